@@ -1,0 +1,138 @@
+"""Per-hypothesis samples of both sides of a test, vectorised over hypotheses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Ragged:
+    """H variable-length groups stored flat: group h is values[offsets[h]:offsets[h+1]]."""
+
+    values: np.ndarray  # float64 (total,)
+    offsets: np.ndarray  # int64 (H + 1,), offsets[0] == 0, non-decreasing
+
+    @classmethod
+    def from_groups(cls, groups: list[np.ndarray]) -> Ragged:
+        sizes = np.array([len(g) for g in groups], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        values = (
+            np.concatenate([np.asarray(g, dtype=np.float64) for g in groups])
+            if len(groups) and offsets[-1]
+            else np.zeros(0)
+        )
+        return cls(values=values, offsets=offsets)
+
+    @property
+    def sizes(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def group(self, h: int) -> np.ndarray:
+        return self.values[self.offsets[h] : self.offsets[h + 1]]
+
+    def sums(self) -> np.ndarray:
+        """Per-group sums (0 for empty groups)."""
+        csum = np.concatenate([[0.0], np.cumsum(self.values)])
+        return csum[self.offsets[1:]] - csum[self.offsets[:-1]]
+
+    def group_ids(self) -> np.ndarray:
+        """Group index of every value."""
+        return np.repeat(np.arange(len(self)), self.sizes)
+
+    def take(self, index: np.ndarray) -> Ragged:
+        """The groups listed in ``index``, in that order."""
+        index = np.asarray(index, dtype=np.int64)
+        return Ragged.from_groups([self.group(int(h)) for h in index])
+
+
+@dataclass(frozen=True)
+class HypothesisSamples:
+    """Everything a test needs about H hypotheses, paper notation.
+
+    Observational side (test set D): ``n`` trajectories enter (X_0:N in B_0:N);
+    of those, the followers (N = t, i.e. A_1:t = a_1:t) contribute their clipped
+    outcome f(X_0:t) in ``follow``; each of the n - n_follow others contributes
+    y_lo to the Y_lo sample and y_up to the Y_up sample.
+    Twin side: the clipped outcomes of the ``nhat`` runs that enter, in ``twin``.
+    All values of ``follow`` and ``twin`` lie in [y_lo, y_up] of their hypothesis.
+    """
+
+    y_lo: np.ndarray  # (H,)
+    y_up: np.ndarray  # (H,)
+    n: np.ndarray  # (H,) int64
+    follow: Ragged  # (H groups) clipped outcomes of followers
+    twin: Ragged  # (H groups) clipped twin outcomes
+
+    def __post_init__(self) -> None:
+        h = len(self.y_lo)
+        if not (len(self.y_up) == len(self.n) == len(self.follow) == len(self.twin) == h):
+            raise ValueError("HypothesisSamples: all parts must describe the same H hypotheses")
+        if np.any(self.follow.sizes > self.n):
+            raise ValueError("HypothesisSamples: more followers than entering trajectories")
+
+    def __len__(self) -> int:
+        return len(self.y_lo)
+
+    @property
+    def n_follow(self) -> np.ndarray:
+        return self.follow.sizes
+
+    @property
+    def nhat(self) -> np.ndarray:
+        return self.twin.sizes
+
+    @property
+    def width(self) -> np.ndarray:
+        """R = y_up - y_lo."""
+        return self.y_up - self.y_lo
+
+    def _mean(self, total: np.ndarray, count: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+    @property
+    def q_lo_hat(self) -> np.ndarray:
+        """Qhat_lo = mean of Y_lo over entering trajectories (NaN when n = 0)."""
+        return self._mean(self.follow.sums() + (self.n - self.n_follow) * self.y_lo, self.n)
+
+    @property
+    def q_up_hat(self) -> np.ndarray:
+        return self._mean(self.follow.sums() + (self.n - self.n_follow) * self.y_up, self.n)
+
+    @property
+    def q_twin_hat(self) -> np.ndarray:
+        return self._mean(self.twin.sums(), self.nhat)
+
+    @property
+    def propensity(self) -> np.ndarray:
+        """P(A_1:t = a_1:t | X_0:N in B_0:N) estimate = n_follow / n = 1 - width ratio."""
+        return self._mean(self.n_follow.astype(float), self.n)
+
+    @property
+    def q_obs_hat(self) -> np.ndarray:
+        """Naive observational mean E[f | A = a, X in B] (followers only); not a bound."""
+        return self._mean(self.follow.sums(), self.n_follow)
+
+    def obs_side(self, side: str) -> Ragged:
+        """The full observational Y_lo (side='lo') or Y_up sample, materialised."""
+        fill = self.y_lo if side == "lo" else self.y_up
+        groups = [
+            np.concatenate([self.follow.group(h), np.full(self.n[h] - self.n_follow[h], fill[h])])
+            for h in range(len(self))
+        ]
+        return Ragged.from_groups(groups)
+
+    def take(self, index: np.ndarray) -> HypothesisSamples:
+        index = np.asarray(index, dtype=np.int64)
+        return HypothesisSamples(
+            y_lo=self.y_lo[index],
+            y_up=self.y_up[index],
+            n=self.n[index],
+            follow=self.follow.take(index),
+            twin=self.twin.take(index),
+        )

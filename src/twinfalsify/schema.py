@@ -1,0 +1,185 @@
+"""Column contracts shared by every stage, and validation with clear errors.
+
+Feature names follow the AI-Clinician sepsis cohort (Komorowski et al. 2018),
+which the paper's MIMIC-III data comes from; units are MIMIC's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+T_MAX = 4  # hourly steps after t = 0 (DESIGN.md: T = 4)
+
+STAY_ID = "stay_id"
+TIME = "t"
+IV_FLUID = "iv_fluid"  # mL/h during hour t -> t+1
+VASOPRESSOR = "vasopressor"  # norepinephrine-equivalent ug/kg/min during hour t -> t+1
+DOSES = (IV_FLUID, VASOPRESSOR)
+
+
+@dataclass(frozen=True)
+class Feature:
+    name: str
+    unit: str
+    kind: str  # demographic | vital | lab
+    lo: float  # plausible range (values outside are rejected by validation)
+    hi: float
+    meaning: str
+
+
+FEATURE_TABLE: tuple[Feature, ...] = (
+    Feature("age", "years", "demographic", 18, 110, "age at ICU admission"),
+    Feature("sex", "0/1", "demographic", 0, 1, "sex, 1 = female, 0 = male"),
+    Feature("weight", "kg", "demographic", 20, 300, "body weight"),
+    Feature("HR", "/min", "vital", 0, 300, "heart rate"),
+    Feature("SysBP", "mmHg", "vital", 0, 300, "systolic arterial blood pressure"),
+    Feature("DiaBP", "mmHg", "vital", 0, 250, "diastolic arterial blood pressure"),
+    Feature("MeanBP", "mmHg", "vital", 0, 250, "mean arterial blood pressure"),
+    Feature("RR", "/min", "vital", 0, 80, "respiratory rate"),
+    Feature("Temp_C", "degC", "vital", 25, 45, "body temperature"),
+    Feature("Potassium", "mmol/L", "lab", 1, 15, "serum potassium"),
+    Feature("Sodium", "mmol/L", "lab", 95, 180, "serum sodium"),
+    Feature("Chloride", "mmol/L", "lab", 60, 160, "serum chloride"),
+    Feature("Glucose", "mg/dL", "lab", 1, 2000, "serum glucose"),
+    Feature("Calcium", "mg/dL", "lab", 2, 20, "serum total calcium"),
+    Feature("HCO3", "mmol/L", "lab", 2, 60, "serum bicarbonate"),
+    Feature("paO2", "mmHg", "lab", 10, 800, "arterial partial pressure of oxygen"),
+    Feature("paCO2", "mmHg", "lab", 5, 200, "arterial partial pressure of CO2"),
+    Feature("Arterial_pH", "pH", "lab", 6.5, 8.0, "arterial blood pH"),
+)
+FEATURES: tuple[str, ...] = tuple(f.name for f in FEATURE_TABLE)
+FEATURE_BY_NAME: Mapping[str, Feature] = {f.name: f for f in FEATURE_TABLE}
+
+# The features a Pulse patient can be initialised with (DESIGN.md: X_0).
+INIT_FEATURES: tuple[str, ...] = ("age", "sex", "weight", "HR", "SysBP", "DiaBP", "RR")
+
+# Outcomes under test: 6 vitals, 8 labs and arterial pH (DESIGN.md).
+OUTCOMES: tuple[str, ...] = (
+    "HR",
+    "SysBP",
+    "DiaBP",
+    "MeanBP",
+    "RR",
+    "Temp_C",
+    "Potassium",
+    "Sodium",
+    "Chloride",
+    "Glucose",
+    "Calcium",
+    "HCO3",
+    "paO2",
+    "paCO2",
+    "Arterial_pH",
+)
+
+TRAJECTORY_COLUMNS: tuple[str, ...] = (STAY_ID, TIME, *FEATURES, *DOSES)
+
+TWIN_STATUSES: tuple[str, ...] = ("ok", "init_failed", "irreversible", "timeout", "error")
+
+
+class ContractError(ValueError):
+    """Input that breaks a data contract; the message names file, column and problem."""
+
+
+def _where(source: str | Path | None) -> str:
+    return f"{source}: " if source else ""
+
+
+def require_columns(
+    df: pd.DataFrame, columns: Iterable[str], source: str | Path | None = None
+) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise ContractError(
+            f"{_where(source)}missing column(s) {', '.join(missing)}; "
+            f"found {', '.join(map(str, df.columns[:30]))}"
+        )
+
+
+def validate_trajectories(
+    df: pd.DataFrame, source: str | Path | None = None, t_max: int = T_MAX
+) -> pd.DataFrame:
+    """Check the trajectory contract and return a canonically ordered copy.
+
+    Contract: one row per (stay_id, t), t = 0..t_max for every stay, every
+    feature finite and inside its plausible range, doses finite and >= 0 for
+    t < t_max (the dose in the last row is never used and may be missing).
+    """
+    where = _where(source)
+    require_columns(df, TRAJECTORY_COLUMNS, source)
+    if df.empty:
+        raise ContractError(f"{where}no trajectories (empty table)")
+    out = df.loc[:, list(TRAJECTORY_COLUMNS)].copy()
+    for col in (*FEATURES, *DOSES):
+        if not pd.api.types.is_numeric_dtype(out[col]):
+            raise ContractError(f"{where}column {col} is not numeric (dtype {out[col].dtype})")
+        out[col] = out[col].astype("float64")
+    out[STAY_ID] = out[STAY_ID].astype("int64")
+    out[TIME] = out[TIME].astype("int64")
+    dup = out.duplicated([STAY_ID, TIME])
+    if dup.any():
+        row = out.loc[dup].iloc[0]
+        raise ContractError(
+            f"{where}duplicated (stay_id, t): stay_id {row[STAY_ID]} has t = {row[TIME]} "
+            f"more than once ({int(dup.sum())} duplicated rows)"
+        )
+    bad_t = ~out[TIME].between(0, t_max)
+    if bad_t.any():
+        raise ContractError(
+            f"{where}column t has values outside 0..{t_max}: "
+            f"{sorted(out.loc[bad_t, TIME].unique())[:5]}"
+        )
+    counts = out.groupby(STAY_ID)[TIME].count()
+    short = counts[counts != t_max + 1]
+    if len(short):
+        raise ContractError(
+            f"{where}every stay needs hours t = 0..{t_max}; {len(short)} stay(s) do not, "
+            f"e.g. stay_id {short.index[0]} has {short.iloc[0]} row(s)"
+        )
+    for feat in FEATURE_TABLE:
+        col = out[feat.name]
+        if col.isna().any():
+            stay = out.loc[col.isna(), STAY_ID].iloc[0]
+            raise ContractError(
+                f"{where}column {feat.name} has {int(col.isna().sum())} missing value(s), "
+                f"e.g. stay_id {stay}"
+            )
+        bad = ~col.between(feat.lo, feat.hi)
+        if bad.any():
+            i = bad.idxmax()
+            raise ContractError(
+                f"{where}column {feat.name} ({feat.unit}) has {int(bad.sum())} value(s) outside "
+                f"the plausible range [{feat.lo}, {feat.hi}], e.g. {col[i]:g} for stay_id "
+                f"{out.at[i, STAY_ID]} at t = {out.at[i, TIME]}"
+                + (" (Fahrenheit in a Celsius column?)" if feat.name == "Temp_C" else "")
+            )
+    if not out["sex"].isin([0.0, 1.0]).all():
+        raise ContractError(f"{where}column sex must be 0 (male) or 1 (female)")
+    used = out[TIME] < t_max
+    for dose in DOSES:
+        col = out.loc[used, dose]
+        if col.isna().any():
+            stay = out.loc[used & out[dose].isna(), STAY_ID].iloc[0]
+            raise ContractError(
+                f"{where}column {dose} has missing values before t = {t_max}, e.g. stay_id {stay}"
+            )
+        if (col < 0).any() or not np.isfinite(col).all():
+            i = col[(col < 0) | ~np.isfinite(col)].index[0]
+            raise ContractError(
+                f"{where}column {dose} must be finite and >= 0; found {col[i]:g} for stay_id "
+                f"{out.at[i, STAY_ID]} at t = {out.at[i, TIME]}"
+            )
+    return out.sort_values([STAY_ID, TIME], kind="stable").reset_index(drop=True)
+
+
+def to_array(df: pd.DataFrame, columns: Iterable[str], t_max: int = T_MAX) -> np.ndarray:
+    """Long (stay, t) table sorted by stay then t -> array (n_stays, t_max + 1, n_columns)."""
+    cols = list(columns)
+    values = df[cols].to_numpy(dtype="float64")
+    n = len(df) // (t_max + 1)
+    return values.reshape(n, t_max + 1, len(cols))
