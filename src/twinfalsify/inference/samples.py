@@ -55,11 +55,12 @@ class HypothesisSamples:
     """Everything a test needs about H hypotheses, paper notation.
 
     Observational side (test set D): ``n`` trajectories enter (X_0:N in B_0:N);
-    of those, the followers (N = t, i.e. A_1:t = a_1:t) contribute their clipped
-    outcome f(X_0:t) in ``follow``; each of the n - n_follow others contributes
-    y_lo to the Y_lo sample and y_up to the Y_up sample.
-    Twin side: the clipped outcomes of the ``nhat`` runs that enter, in ``twin``.
-    All values of ``follow`` and ``twin`` lie in [y_lo, y_up] of their hypothesis.
+    of those, the followers (N = t, i.e. A_1:t = a_1:t) have their raw outcome
+    X_t[k] in ``follow``; f = clip(., y_lo, y_up) is applied by the methods (so
+    a sensitivity sweep can widen [y_lo, y_up] without losing information).
+    Each of the n - n_follow others contributes y_lo to the Y_lo sample and
+    y_up to the Y_up sample. Twin side: raw outcomes of the ``nhat`` runs that
+    enter, in ``twin``.
     """
 
     y_lo: np.ndarray  # (H,)
@@ -95,18 +96,35 @@ class HypothesisSamples:
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
+    def clip(self, ragged: Ragged) -> Ragged:
+        """f = clip(value, y_lo, y_up) of each value's own hypothesis."""
+        gid = ragged.group_ids()
+        return Ragged(np.clip(ragged.values, self.y_lo[gid], self.y_up[gid]), ragged.offsets)
+
+    @property
+    def follow_f(self) -> Ragged:
+        """Followers' f(X_0:t) = clipped outcomes."""
+        return self.clip(self.follow)
+
+    @property
+    def twin_f(self) -> Ragged:
+        """Twin runs' f(X_0, Xtwin_1:t) = clipped outcomes."""
+        return self.clip(self.twin)
+
     @property
     def q_lo_hat(self) -> np.ndarray:
         """Qhat_lo = mean of Y_lo over entering trajectories (NaN when n = 0)."""
-        return self._mean(self.follow.sums() + (self.n - self.n_follow) * self.y_lo, self.n)
+        return self._mean(self.follow_f.sums() + (self.n - self.n_follow) * self.y_lo, self.n)
 
     @property
     def q_up_hat(self) -> np.ndarray:
-        return self._mean(self.follow.sums() + (self.n - self.n_follow) * self.y_up, self.n)
+        """Qhat_up = mean of Y_up over entering trajectories (NaN when n = 0)."""
+        return self._mean(self.follow_f.sums() + (self.n - self.n_follow) * self.y_up, self.n)
 
     @property
     def q_twin_hat(self) -> np.ndarray:
-        return self._mean(self.twin.sums(), self.nhat)
+        """Qhat_twin = mean of f over entering twin runs (NaN when nhat = 0)."""
+        return self._mean(self.twin_f.sums(), self.nhat)
 
     @property
     def propensity(self) -> np.ndarray:
@@ -115,17 +133,25 @@ class HypothesisSamples:
 
     @property
     def q_obs_hat(self) -> np.ndarray:
-        """Naive observational mean E[f | A = a, X in B] (followers only); not a bound."""
-        return self._mean(self.follow.sums(), self.n_follow)
+        """Naive observational mean of f given A = a, X in B (followers only); not a bound."""
+        return self._mean(self.follow_f.sums(), self.n_follow)
 
     def obs_side(self, side: str) -> Ragged:
-        """The full observational Y_lo (side='lo') or Y_up sample, materialised."""
+        """The full observational Y_lo (side='lo') or Y_up sample, materialised (clipped)."""
         fill = self.y_lo if side == "lo" else self.y_up
+        follow = self.follow_f
         groups = [
-            np.concatenate([self.follow.group(h), np.full(self.n[h] - self.n_follow[h], fill[h])])
+            np.concatenate([follow.group(h), np.full(self.n[h] - self.n_follow[h], fill[h])])
             for h in range(len(self))
         ]
         return Ragged.from_groups(groups)
+
+    def with_bounds(self, y_lo: np.ndarray, y_up: np.ndarray) -> HypothesisSamples:
+        """Same samples, other [y_lo, y_up] (e.g. the sensitivity sweep's widened range)."""
+        return HypothesisSamples(
+            y_lo=np.asarray(y_lo, float), y_up=np.asarray(y_up, float), n=self.n,
+            follow=self.follow, twin=self.twin,
+        )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:
         index = np.asarray(index, dtype=np.int64)
