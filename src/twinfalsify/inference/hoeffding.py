@@ -55,6 +55,10 @@ def hoeffding_test(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One-sided Hoeffding p-values (p_lo, p_up) for every hypothesis."""
     q_twin = samples.q_twin_hat
-    p_lo = hoeffding_pvalue(samples.q_lo_hat - q_twin, samples.width, samples.n, samples.nhat, factor)
-    p_up = hoeffding_pvalue(q_twin - samples.q_up_hat, samples.width, samples.n, samples.nhat, factor)
+    p_lo = hoeffding_pvalue(
+        samples.q_lo_hat - q_twin, samples.width, samples.n, samples.nhat, factor
+    )
+    p_up = hoeffding_pvalue(
+        q_twin - samples.q_up_hat, samples.width, samples.n, samples.nhat, factor
+    )
     return p_lo, p_up

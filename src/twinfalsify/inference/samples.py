@@ -25,6 +25,17 @@ class Ragged:
         )
         return cls(values=values, offsets=offsets)
 
+    @classmethod
+    def from_grouped(cls, ids: np.ndarray, values: np.ndarray, order: np.ndarray) -> Ragged:
+        """Long (id, value) pairs -> one group per id in ``order`` (ids absent -> empty)."""
+        ids, values, order = np.asarray(ids), np.asarray(values, float), np.asarray(order)
+        pos = {int(h): i for i, h in enumerate(order.tolist())}
+        gi = np.array([pos[int(h)] for h in ids.tolist()], dtype=np.int64)
+        sort = np.argsort(gi, kind="stable")
+        sizes = np.bincount(gi, minlength=len(order))
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        return cls(values=values[sort], offsets=offsets)
+
     @property
     def sizes(self) -> np.ndarray:
         return np.diff(self.offsets)
@@ -149,8 +160,11 @@ class HypothesisSamples:
     def with_bounds(self, y_lo: np.ndarray, y_up: np.ndarray) -> HypothesisSamples:
         """Same samples, other [y_lo, y_up] (e.g. the sensitivity sweep's widened range)."""
         return HypothesisSamples(
-            y_lo=np.asarray(y_lo, float), y_up=np.asarray(y_up, float), n=self.n,
-            follow=self.follow, twin=self.twin,
+            y_lo=np.asarray(y_lo, float),
+            y_up=np.asarray(y_up, float),
+            n=self.n,
+            follow=self.follow,
+            twin=self.twin,
         )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:

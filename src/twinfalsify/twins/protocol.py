@@ -77,8 +77,12 @@ def serve_forever(
             try:
                 fields = simulate(msg)
             except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
-                fields = {"status": "error", "message": f"{type(exc).__name__}: {exc}",
-                          "hours": [], "clamped": {}}
+                fields = {
+                    "status": "error",
+                    "message": f"{type(exc).__name__}: {exc}",
+                    "hours": [],
+                    "clamped": {},
+                }
             answer = {"op": "result", "id": msg.get("id"), **fields}
         elif op == "shutdown":
             stdout.write(encode({"op": "bye"}))

@@ -1,0 +1,25 @@
+# twinfalsify: causal falsification of digital twins (Cornish et al., JMLR 2026).
+# Run the default study:  snakemake --cores 2
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+# A study config given with --configfile replaces the default (no merging of twin lists).
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/source.smk"
+include: "workflow/rules/design.smk"
+include: "workflow/rules/twins.smk"
+include: "workflow/rules/tests.smk"
+include: "workflow/rules/outputs.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        all_outputs(),

@@ -1,0 +1,38 @@
+"""Rule design: action bins, B-sets and hypotheses, all from D0."""
+
+import json  # noqa: F401
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify import design  # noqa: E402
+from twinfalsify.io import log, read_parquet, run_rule, write_csv, write_json, write_parquet  # noqa: E402
+from twinfalsify.schema import OUTCOMES, validate_trajectories  # noqa: E402
+
+
+def main(sm):
+    cfg = json.loads(sm.params.design)
+    d0 = validate_trajectories(read_parquet(sm.input.d0, "D0"), source=sm.input.d0)
+    d = validate_trajectories(read_parquet(sm.input.d, "D"), source=sm.input.d)
+    outcomes = tuple(cfg.get("outcomes", OUTCOMES))
+    actions = design.fit_action_bins(d0)
+    states = design.fit_state_bins(d0, outcomes)
+    hyps, report = design.build_hypotheses(
+        d0,
+        actions,
+        states,
+        outcomes=outcomes,
+        quantiles=tuple(cfg.get("quantiles", (0.2, 0.8))),
+        min_support=int(cfg.get("min_support", 10)),
+        kinds=tuple(cfg.get("kinds", ("causal", "manski"))),
+    )
+    log.info("hypotheses: %s", hyps.groupby("kind").size().to_dict())
+    write_json(actions.to_json(), sm.output.actions)
+    write_json(states.to_json(), sm.output.bins)
+    write_parquet(hyps, sm.output.hypotheses)
+    write_csv(report, sm.output.report)
+    write_csv(design.action_space_table(d, actions), sm.output.action_space)
+
+
+run_rule(snakemake, main)  # noqa: F821

@@ -1,0 +1,28 @@
+"""Rule trajectories: the observational cohort from the configured source."""
+
+import json  # noqa: F401
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify.io import log, run_rule, write_parquet  # noqa: E402
+from twinfalsify.schema import STAY_ID, validate_trajectories  # noqa: E402
+
+
+def main(sm):
+    source = json.loads(sm.params.source)
+    if source["kind"] == "synthetic":
+        from twinfalsify.sources.synthetic import generate
+
+        traj = generate(source.get("synthetic"), seed=int(sm.params.seed))
+    else:
+        from twinfalsify.sources.mimic3_rule import extract_for_study
+
+        traj = extract_for_study(source.get("mimic3") or {}, Path(sm.output[0]).parent)
+    traj = validate_trajectories(traj, source=f"source {source['kind']}")
+    log.info("%d stays, %d rows", traj[STAY_ID].nunique(), len(traj))
+    write_parquet(traj, sm.output[0])
+
+
+run_rule(snakemake, main)  # noqa: F821

@@ -1,0 +1,38 @@
+"""Rule twin_plan: X_0 permutation, prefix tree of action sequences, shards."""
+
+import json  # noqa: F401
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify.io import log, read_parquet, run_rule, write_json  # noqa: E402
+from twinfalsify.schema import STAY_ID  # noqa: E402
+from twinfalsify.twins.plan import plan_twin_runs  # noqa: E402
+
+
+def main(sm):
+    d = read_parquet(sm.input.d, "D")
+    hyps = read_parquet(sm.input.hypotheses, "hypotheses")
+    runs = json.loads(sm.params.runs)
+    plan = plan_twin_runs(
+        hyps,
+        d[STAY_ID].unique(),
+        runs.get("runs_per_sequence", 5000),
+        int(runs.get("n_shards", 4)),
+        int(sm.params.seed),
+    )
+    log.info(
+        "%d X_0 per sequence, %d nodes, twin-hours %s",
+        len(plan.x0_stay_ids),
+        len(plan.nodes),
+        plan.hours(),
+    )
+    write_json(plan.to_json(), sm.output.plan)
+    write_json(
+        {"source": json.loads(sm.params.source), "d0": str(Path(sm.input.d0).resolve())},
+        sm.output.context,
+    )
+
+
+run_rule(snakemake, main)  # noqa: F821

@@ -1,0 +1,31 @@
+"""Rule twin_shard: simulate one shard of the prefix tree with one twin."""
+
+import json  # noqa: F401
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify.design import ActionBins  # noqa: E402
+from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
+from twinfalsify.twins.plan import TwinPlan, run_shard, x0_frame  # noqa: E402
+from twinfalsify.twins.registry import make_twin  # noqa: E402
+
+
+def main(sm):
+    plan = TwinPlan.from_json(read_json(sm.input.plan))
+    twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
+    x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
+    runs = run_shard(
+        twin, plan, int(sm.wildcards.shard), x0, ActionBins.from_json(read_json(sm.input.actions))
+    )
+    log.info(
+        "shard %s: %d node rows, status %s",
+        sm.wildcards.shard,
+        len(runs),
+        runs["status"].value_counts().to_dict() if len(runs) else {},
+    )
+    write_parquet(runs, sm.output[0])
+
+
+run_rule(snakemake, main)  # noqa: F821

@@ -1,0 +1,148 @@
+"""Both sides of every hypothesis, vectorised over hypotheses and trajectories.
+
+Observational side (test set D), for hypothesis h = (k, t, a_1:t, B_0:t):
+N = max{s <= t : A_1:s = a_1:s} (0 when A_1 != a_1); a trajectory enters iff
+X_0:N in B_0:N; it is a follower iff N = t. The followers' raw outcomes X_t[k]
+are kept (methods clip them to [y_lo, y_up]); non-followers contribute y_lo to
+Y_lo and y_up to Y_up (Cornish et al. 2026, Theorem: Q_lo <= E[Y(a) | X(a) in B]
+<= Q_up, with (Q_up - Q_lo) / (y_up - y_lo) = 1 - P(A_1:t = a_1:t | X_0:N in B_0:N)).
+
+Twin side: run i of sequence a_1:t enters iff the real X_0 of its initial stay
+is in B_0 and Xtwin_s in B_s for s = 1..t; its outcome is Xtwin_t[k].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.schema import FEATURES, T_MAX
+
+_CHUNK_CELLS = 40_000_000  # booleans per chunk (H_chunk x n x (T + 1)): bounded memory
+
+
+def _chunks(size: int, n: int, width: int) -> list[slice]:
+    step = max(1, _CHUNK_CELLS // max(1, n * width))
+    return [slice(i, min(i + step, size)) for i in range(0, size, step)]
+
+
+def _bmatch(bins: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """(H, T+1) hypothesis B codes vs (n, T+1) codes -> (H, n, T+1) membership."""
+    b = bins[:, None, :]
+    return (b == codes[None, :, :]) | (b == WHOLE_SPACE)
+
+
+@dataclass(frozen=True)
+class ObservationalSide:
+    n: np.ndarray  # (H,) entering trajectories
+    follow: Ragged  # raw outcomes of followers
+
+
+def observational_side(
+    hyps: pd.DataFrame,
+    x: np.ndarray,
+    actions: np.ndarray,
+    states: StateBins,
+    t_max: int = T_MAX,
+) -> ObservationalSide:
+    """Counts and follower outcomes on D: x (n, T+1, F) features, actions (n, T) codes."""
+    h_total = len(hyps)
+    n_enter = np.zeros(h_total, dtype=np.int64)
+    groups: list[np.ndarray] = [np.zeros(0)] * h_total
+    a_pad = padded(hyps, "actions", t_max)
+    b_pad = padded(hyps, "bins", t_max + 1)
+    t_h = hyps["t"].to_numpy(np.int64)
+    s_idx = np.arange(t_max + 1)
+    for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
+        codes = state_codes(x, states, outcome)
+        y = x[:, :, FEATURES.index(outcome)]
+        for sl in _chunks(len(idx), len(x), t_max + 1):
+            hs = idx[sl]
+            eq = actions[None, :, :] == a_pad[hs][:, None, :]
+            n_match = np.cumprod(eq, axis=2).sum(axis=2)  # (h, n): N
+            allowed = (s_idx[None, None, :] > n_match[..., None]) | _bmatch(b_pad[hs], codes)
+            enter = allowed.all(axis=2)
+            follow = enter & (n_match == t_h[hs][:, None])
+            n_enter[hs] = enter.sum(axis=1)
+            hh, ii = np.nonzero(follow)
+            vals = y[ii, t_h[hs][hh]]
+            cuts = np.searchsorted(hh, np.arange(1, len(hs)))
+            for j, v in enumerate(np.split(vals, cuts)):
+                groups[hs[j]] = v
+    return ObservationalSide(n=n_enter, follow=Ragged.from_groups(groups))
+
+
+@dataclass(frozen=True)
+class TwinNodes:
+    """Twin runs in prefix-tree form: one row per (node = a_1:s, X_0).
+
+    values: (n_nodes, m, F) features at hour s = len(node) (NaN where the run
+    failed at or before hour s); x0: (m, F) real X_0 rows of the initial stays.
+    """
+
+    index: dict[tuple[int, ...], int]
+    values: np.ndarray
+    x0: np.ndarray
+
+
+def twin_side(
+    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+) -> tuple[Ragged, np.ndarray]:
+    """(raw twin outcomes of entering ok runs, n_failed per hypothesis).
+
+    A run whose path a_1:1 .. a_1:t has a failed node cannot be evaluated; it is
+    left out of the twin sample and counted in n_failed (runs failing B_0 are
+    not counted: they would not enter whatever the twin did).
+    """
+    h_total = len(hyps)
+    m = nodes.x0.shape[0]
+    groups: list[np.ndarray] = [np.zeros(0)] * h_total
+    n_failed = np.zeros(h_total, dtype=np.int64)
+    t_h = hyps["t"].to_numpy(np.int64)
+    b_pad = padded(hyps, "bins", t_max + 1)
+    paths = np.full((h_total, t_max), -1, dtype=np.int64)
+    for i, seq in enumerate(hyps["actions"].tolist()):
+        for s in range(1, len(seq) + 1):
+            paths[i, s - 1] = nodes.index[tuple(int(a) for a in seq[:s])]
+    base0 = states.base_codes(nodes.x0)
+    for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
+        k = FEATURES.index(outcome)
+        code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
+        vk = nodes.values[:, :, k]  # (n_nodes, m)
+        for sl in _chunks(len(idx), m, t_max + 1):
+            hs = idx[sl]
+            p = paths[hs]  # (h, T)
+            vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
+            on_path = p >= 0
+            failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)  # (h, m)
+            codes = base0[None, None, :] + states.above(
+                outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
+            )
+            bs = b_pad[hs][:, 1:, None]
+            ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
+            b0 = b_pad[hs][:, 0][:, None]
+            in_b0 = (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
+            enter = in_b0 & ok_s.all(axis=1) & ~failed
+            n_failed[hs] = (failed & in_b0).sum(axis=1)
+            last = vals[np.arange(len(hs)), t_h[hs] - 1, :]  # (h, m)
+            hh, ii = np.nonzero(enter)
+            cuts = np.searchsorted(hh, np.arange(1, len(hs)))
+            for j, v in enumerate(np.split(last[hh, ii], cuts)):
+                groups[hs[j]] = v
+    return Ragged.from_groups(groups), n_failed
+
+
+def hypothesis_samples(
+    hyps: pd.DataFrame, obs: ObservationalSide, twin: Ragged
+) -> HypothesisSamples:
+    return HypothesisSamples(
+        y_lo=hyps["y_lo"].to_numpy(float),
+        y_up=hyps["y_up"].to_numpy(float),
+        n=obs.n,
+        follow=obs.follow,
+        twin=twin,
+    )

@@ -1,0 +1,91 @@
+"""Small I/O helpers for the rule scripts: atomic writes, logs, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from twinfalsify.schema import ContractError
+
+log = logging.getLogger("twinfalsify")
+
+
+def _tmp(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_parquet(df: pd.DataFrame, path: str | Path) -> None:
+    """Write atomically (temp file + rename) so a killed job leaves no half file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    df.to_parquet(tmp, index=False)
+    tmp.replace(path)
+
+
+def write_csv(df: pd.DataFrame, path: str | Path, **kwargs: Any) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    df.to_csv(tmp, index=False, **kwargs)
+    tmp.replace(path)
+
+
+def write_text(text: str, path: str | Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def write_json(data: Any, path: str | Path) -> None:
+    write_text(json.dumps(data, indent=1, sort_keys=True) + "\n", path)
+
+
+def read_json(path: str | Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+def read_parquet(path: str | Path, what: str = "table") -> pd.DataFrame:
+    path = Path(path)
+    if not path.exists():
+        raise ContractError(f"{path}: {what} not found")
+    try:
+        return pd.read_parquet(path)
+    except Exception as exc:  # noqa: BLE001 - re-raised with the file named
+        raise ContractError(f"{path}: cannot read {what} as Parquet ({exc})") from None
+
+
+def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
+    """Run a rule script body with logging to the rule's log and one-line data errors.
+
+    A ContractError (bad input, bad config) ends the job with its message as
+    the last line of the log and of stderr, not with a traceback.
+    """
+    log_path = snakemake.log[0] if len(snakemake.log) else None
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
+    if log_path:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.FileHandler(log_path, mode="w"))
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(message)s", handlers=handlers, force=True
+    )
+    try:
+        main(snakemake)
+    except ContractError as exc:
+        log.error("ERROR: %s", exc)
+        sys.exit(1)
+    except Exception:
+        log.error(
+            "ERROR: unexpected failure in rule %s:\n%s", snakemake.rule, traceback.format_exc()
+        )
+        sys.exit(1)

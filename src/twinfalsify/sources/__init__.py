@@ -1,0 +1,1 @@
+"""Sources of observational trajectories (synthetic world, MIMIC-III)."""

@@ -1,0 +1,198 @@
+"""Plan, run and collect twin simulations in prefix-tree form.
+
+Every action sequence a_1:t used by a hypothesis gets runs from the same m
+initial states: the first m stays of one seeded permutation of D (so the runs
+of one sequence have distinct X_0 and are i.i.d.). Because a twin is
+non-anticipating (hour s depends on a_1:s only), the runs of a_1:s are the
+first s hours of the runs of any extension a_1:t from the same X_0. Results
+are therefore stored per node = (prefix a_1:s, X_0): one row holding hour s.
+Only the leaves of the prefix tree are simulated; their hours fill every node
+on their path. Shards group leaves by first action, so no node is split
+across shards.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.bounds import TwinNodes
+from twinfalsify.design import ActionBins
+from twinfalsify.schema import FEATURES, STAY_ID, ContractError
+from twinfalsify.twins import noise
+from twinfalsify.twins.base import Twin
+
+NODE_COLUMNS = ("node", "t", "init_stay_id", "status", "message", "clamped", *FEATURES)
+
+
+def node_name(seq: Iterable[int]) -> str:
+    return "-".join(str(int(a)) for a in seq)
+
+
+def parse_node(name: str) -> tuple[int, ...]:
+    return tuple(int(a) for a in name.split("-"))
+
+
+@dataclass(frozen=True)
+class TwinPlan:
+    x0_stay_ids: list[int]
+    seed: int
+    shards: list[list[str]]  # leaf sequences (node names) per shard
+    nodes: list[str]  # every node, sorted
+
+    def to_json(self) -> dict:
+        return {
+            "x0_stay_ids": self.x0_stay_ids,
+            "seed": self.seed,
+            "shards": self.shards,
+            "nodes": self.nodes,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict) -> TwinPlan:
+        return cls(**data)
+
+    def run_seeds(self) -> np.ndarray:
+        """One uint64 seed per X_0, shared by every sequence (so prefixes coincide)."""
+        return noise.combine(np.uint64(self.seed), np.asarray(self.x0_stay_ids, dtype=np.uint64))
+
+    def hours(self) -> dict[str, int]:
+        """Simulated twin-hours: paper's scheme (every sequence from scratch), leaves only
+        (what in-process twins do), and the prefix-tree minimum (each node once)."""
+        m = len(self.x0_stay_ids)
+        leaves = [leaf for shard in self.shards for leaf in shard]
+        return {
+            "from_scratch": m * sum(len(parse_node(n)) for n in self.nodes),
+            "leaves": m * sum(len(parse_node(n)) for n in leaves),
+            "prefix_tree": m * len(self.nodes),
+        }
+
+
+def plan_twin_runs(
+    hyps: pd.DataFrame,
+    d_stay_ids: np.ndarray,
+    runs_per_sequence: int | None,
+    n_shards: int,
+    seed: int,
+) -> TwinPlan:
+    stays = np.sort(np.asarray(d_stay_ids, dtype=np.int64))
+    m = len(stays) if not runs_per_sequence else min(int(runs_per_sequence), len(stays))
+    x0 = np.random.default_rng(seed).permutation(stays)[:m]
+    seqs = {tuple(int(a) for a in s) for s in hyps["actions"].tolist()}
+    nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
+    leaves = sorted(s for s in nodes if not any(o[: len(s)] == s and o != s for o in nodes))
+    by_first: dict[int, list[tuple[int, ...]]] = {}
+    for leaf in leaves:
+        by_first.setdefault(leaf[0], []).append(leaf)
+    n_shards = max(1, int(n_shards))
+    shards: list[list[str]] = [[] for _ in range(n_shards)]
+    load = np.zeros(n_shards)
+    for _, group in sorted(by_first.items(), key=lambda kv: (-sum(map(len, kv[1])), kv[0])):
+        j = int(np.argmin(load))
+        shards[j].extend(node_name(s) for s in group)
+        load[j] += sum(map(len, group))
+    return TwinPlan(
+        x0_stay_ids=[int(s) for s in x0],
+        seed=int(seed),
+        shards=shards,
+        nodes=sorted(node_name(s) for s in nodes),
+    )
+
+
+def x0_frame(d: pd.DataFrame, stay_ids: list[int]) -> pd.DataFrame:
+    """Real t = 0 rows of the given stays, in that order."""
+    first = d[d["t"] == 0].set_index(STAY_ID)
+    missing = set(stay_ids) - set(first.index)
+    if missing:
+        raise ContractError(
+            f"twin plan: {len(missing)} initial stay(s) not in D, e.g. {sorted(missing)[:3]}"
+        )
+    return first.loc[stay_ids, list(FEATURES)].reset_index()
+
+
+def run_shard(
+    twin: Twin,
+    plan: TwinPlan,
+    shard: int,
+    x0: pd.DataFrame,
+    actions: ActionBins,
+    log=sys.stderr,
+) -> pd.DataFrame:
+    """Simulate the shard's leaves for all planned X_0; one row per (node, X_0)."""
+    if not 0 <= shard < len(plan.shards):
+        raise ContractError(f"twin shard {shard} does not exist (plan has {len(plan.shards)})")
+    seeds = plan.run_seeds()
+    m = len(x0)
+    frames: dict[str, pd.DataFrame] = {}
+    leaves = plan.shards[shard]  # may be empty: fewer first actions than shards
+    start = time.monotonic()
+    for i, leaf in enumerate(leaves, 1):
+        seq = parse_node(leaf)
+        doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
+        res = twin.simulate(x0, doses, seeds)
+        if res.features.shape != (m, len(seq), len(FEATURES)):
+            raise ContractError(
+                f"twin {twin.name}: simulate returned features of shape {res.features.shape}, "
+                f"expected {(m, len(seq), len(FEATURES))}"
+            )
+        for s in range(1, len(seq) + 1):
+            name = node_name(seq[:s])
+            if name in frames:
+                continue
+            vals = res.features[:, s - 1, :]
+            done = np.isfinite(vals).all(axis=1)
+            f = pd.DataFrame(vals, columns=list(FEATURES))
+            f.insert(0, "clamped", res.clamped)
+            f.insert(0, "message", np.where(done, "", res.message))
+            f.insert(
+                0, "status", np.where(done, "ok", np.where(res.status == "ok", "error", res.status))
+            )
+            f.insert(0, "init_stay_id", x0[STAY_ID].to_numpy(np.int64))
+            f.insert(0, "t", s)
+            f.insert(0, "node", name)
+            frames[name] = f
+        rate = i * m / max(time.monotonic() - start, 1e-9)
+        print(
+            f"[twin {twin.name} shard {shard}] leaf {i}/{len(leaves)} ({leaf}): {m} runs, "
+            f"{rate:,.0f} runs/s",
+            file=log,
+            flush=True,
+        )
+    if not frames:
+        return pd.DataFrame(columns=list(NODE_COLUMNS))
+    return pd.concat(frames.values(), ignore_index=True)
+
+
+def load_nodes(runs: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNodes:
+    """Node table -> TwinNodes arrays aligned to the plan's X_0 order."""
+    names = plan.nodes
+    index = {parse_node(n): i for i, n in enumerate(names)}
+    m = len(plan.x0_stay_ids)
+    values = np.full((len(names), m, len(FEATURES)), np.nan)
+    pos = {s: j for j, s in enumerate(plan.x0_stay_ids)}
+    node_idx = runs["node"].map({n: i for i, n in enumerate(names)})
+    if node_idx.isna().any():
+        raise ContractError(
+            f"twin runs hold node(s) not in the plan, e.g. "
+            f"{runs.loc[node_idx.isna(), 'node'].iloc[0]}"
+        )
+    run_idx = runs["init_stay_id"].map(pos)
+    ok = (runs["status"] == "ok").to_numpy()
+    values[node_idx.to_numpy(int)[ok], run_idx.to_numpy(int)[ok], :] = runs.loc[
+        ok, list(FEATURES)
+    ].to_numpy(float)
+    missing = len(names) * m - len(runs)
+    if missing:
+        raise ContractError(f"twin runs: {missing} (node, X_0) row(s) missing from the shards")
+    return TwinNodes(index=index, values=values, x0=x0[list(FEATURES)].to_numpy(float))
+
+
+def status_summary(runs: pd.DataFrame) -> dict:
+    counts = runs.groupby(["t", "status"]).size().unstack(fill_value=0)
+    return json.loads(counts.to_json(orient="index"))

@@ -1,0 +1,73 @@
+"""Run the statistical pipeline in-process on a synthetic study (no Snakemake)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pandas as pd
+
+from twinfalsify import bounds, design
+from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.schema import FEATURES, STAY_ID, to_array
+from twinfalsify.sources.synthetic import SyntheticWorld
+from twinfalsify.split import split_stays
+from twinfalsify.twins import plan as tp
+from twinfalsify.twins.registry import make_twin
+
+
+@dataclass
+class Study:
+    d0: pd.DataFrame
+    d: pd.DataFrame
+    actions: design.ActionBins
+    states: design.StateBins
+    hyps: pd.DataFrame
+    obs: bounds.ObservationalSide
+    plan: tp.TwinPlan
+    x0: pd.DataFrame
+
+
+def build_study(
+    n_stays: int,
+    seed: int,
+    *,
+    d0_fraction: float = 0.1,
+    min_support: int = 10,
+    runs: int | None = 2000,
+    world_cfg: dict | None = None,
+) -> Study:
+    world = SyntheticWorld.from_config({"n_stays": n_stays, **(world_cfg or {})})
+    traj = world.sample_observational(seed)
+    d0, d = split_stays(traj, d0_fraction, seed)
+    actions = design.fit_action_bins(d0)
+    states = design.fit_state_bins(d0)
+    hyps, _ = design.build_hypotheses(d0, actions, states, min_support=min_support)
+    obs = bounds.observational_side(
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+    )
+    plan = tp.plan_twin_runs(hyps, d[STAY_ID].unique(), runs, 2, seed)
+    return Study(d0, d, actions, states, hyps, obs, plan, tp.x0_frame(d, plan.x0_stay_ids))
+
+
+def evaluate_twin(
+    study: Study, name: str, spec: dict, tmp_path, *, methods=None, alpha: float = 0.05
+) -> pd.DataFrame:
+    d0_path = tmp_path / "d0.parquet"
+    study.d0.to_parquet(d0_path)
+    ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}, "d0": str(d0_path)}
+    twin = make_twin(name, spec, ctx)
+    import io
+
+    runs = pd.concat(
+        [
+            tp.run_shard(twin, study.plan, k, study.x0, study.actions, log=io.StringIO())
+            for k in range(len(study.plan.shards))
+        ],
+        ignore_index=True,
+    )
+    nodes = tp.load_nodes(runs, study.plan, study.x0)
+    twin_vals, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
+    samples = bounds.hypothesis_samples(study.hyps, study.obs, twin_vals)
+    return run_tests(
+        study.hyps, samples, n_failed, make_methods(methods or {"hoeffding": {}}, 0), alpha=alpha
+    )

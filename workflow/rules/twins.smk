@@ -1,0 +1,65 @@
+rule twin_plan:
+    input:
+        d=f"{R}/d.parquet",
+        d0=f"{R}/d0.parquet",
+        hypotheses=f"{R}/design/hypotheses.parquet",
+    output:
+        plan=f"{R}/twin_plan.json",
+        context=f"{R}/twin_context.json",
+    log:
+        f"{LOGS}/twin_plan.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        runs=canon(config["twin_runs"]),
+        seed=config["seed"],
+        source=canon(config["source"]),
+    script:
+        "../../scripts/twin_plan.py"
+
+
+rule twin_shard:
+    input:
+        plan=f"{R}/twin_plan.json",
+        context=f"{R}/twin_context.json",
+        d=f"{R}/d.parquet",
+        actions=f"{R}/design/actions.json",
+    output:
+        f"{R}/twins/{{twin}}/shards/{{shard}}.parquet",
+    log:
+        f"{LOGS}/twins/{{twin}}/shard_{{shard}}.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/shard_{{shard}}.tsv"
+    conda:
+        "../../envs/twinfalsify.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=120,
+    params:
+        spec=lambda w: canon(config["twins"][w.twin]),
+    script:
+        "../../scripts/twin_shard.py"
+
+
+rule twin_runs:
+    input:
+        shards=expand(
+            f"{R}/twins/{{{{twin}}}}/shards/{{shard}}.parquet", shard=range(N_SHARDS)
+        ),
+        plan=f"{R}/twin_plan.json",
+    output:
+        runs=f"{twin_dir()}/runs.parquet",
+        summary=f"{twin_dir()}/run_summary.json",
+    log:
+        f"{LOGS}/twins/{{twin}}/runs.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=6000,
+        runtime=20,
+    script:
+        "../../scripts/twin_runs.py"
