@@ -180,6 +180,11 @@ class _Worker:
                 raise _WorkerTimeout() from None
             if line is None:
                 raise self._died()
+            if not line.endswith("\n"):
+                # A last line without its newline: the worker died while
+                # writing (or closed stdout); that is a crash, not an answer.
+                died = self._died()
+                raise _WorkerDied(f"{died} (after a partial line {line[:80]!r})")
             if line.strip():
                 return decode(line)
 
@@ -364,14 +369,14 @@ class _Pool:
             msg = worker.ask({"op": "hello", "protocol": 1}, self.timeout_s)
             hello = check_hello(msg, self.required, _UNITS)
         except ProtocolError as exc:
-            tail = worker.tail()
             self._drop_worker(slot)
+            tail = worker.tail()
             raise ContractError(
                 f"{where}: bad hello: {exc}" + (f"; stderr tail: {tail}" if tail else "")
             ) from None
         except (_WorkerDied, _WorkerTimeout) as exc:
-            tail = worker.tail()
             self._drop_worker(slot)
+            tail = worker.tail()
             if first:
                 what = str(exc) if isinstance(exc, _WorkerDied) else (
                     f"no hello answer within {self.timeout_s:g} s"
@@ -427,8 +432,9 @@ class _Pool:
                     worker.hello["declared_units"], FEATURES,
                 )
             except _WorkerTimeout:
-                tail = self.workers[slot].tail() if slot in self.workers else ""
-                self._drop_worker(slot)
+                hung = self.workers.get(slot)
+                self._drop_worker(slot)  # kill first: the stderr tail is then complete
+                tail = hung.tail() if hung is not None else ""
                 last_status = "timeout"
                 last_message = f"no answer within {self.timeout_s:g} s; worker killed" + (
                     f"; stderr tail: {tail}" if tail else ""
