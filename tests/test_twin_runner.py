@@ -319,3 +319,50 @@ def test_protocol_twin_interface():
     assert [f["name"] for f in hello["features"]] == list(FEATURES)
     res = twin.simulate(x0, doses, seeds)
     np.testing.assert_allclose(res.features, expected_features(x0, doses, seeds), atol=1e-9)
+
+
+def _child_pids(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat[stat.rindex(")") + 2 :].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def test_sigterm_to_the_caller_kills_its_workers(tmp_path):
+    """Snakemake cancels a job with SIGTERM: the twin workers must not outlive it."""
+    import signal
+    import subprocess
+
+    script = tmp_path / "caller.py"
+    script.write_text(
+        "import sys, numpy as np, pandas as pd\n"
+        "from twinfalsify.schema import FEATURES\n"
+        "from twinfalsify.twins.runner import simulate_via_protocol\n"
+        "x0 = pd.DataFrame({f: [70.0, 71.0] for f in FEATURES})\n"
+        f"simulate_via_protocol({[*FAULTY, '--mode=hang']!r}, x0, np.ones((2, 2, 2)),\n"
+        "    np.array([1, 2], dtype=np.uint64), workers=2, timeout_s=60, progress=False)\n"
+    )
+    caller = subprocess.Popen([sys.executable, str(script)], env={**os.environ, **ENV},
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 10
+        while len(_child_pids(caller.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        workers = _child_pids(caller.pid)
+        assert len(workers) == 2
+        time.sleep(0.3)  # let both hellos finish and the hanging requests go out
+        caller.send_signal(signal.SIGTERM)
+        _, err = caller.communicate(timeout=15)
+    finally:
+        if caller.poll() is None:
+            caller.kill()
+            caller.communicate()
+    assert caller.returncode == 128 + signal.SIGTERM, err
+    time.sleep(0.2)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in workers)

@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -360,6 +360,8 @@ class _Pool:
         A restart that dies or hangs counts as a failed attempt of the run.
         A hello that breaks the contract always raises.
         """
+        if self.stop.is_set():
+            raise _WorkerDied("pool is stopping")
         first = slot not in self.started
         self.started.add(slot)
         worker = _Worker(self.command, self.env)
@@ -415,6 +417,8 @@ class _Pool:
         attempts = self.retries + 1
         last_status, last_message = "error", ""
         for attempt in range(attempts):
+            if self.stop.is_set():  # interrupted: do not restart workers
+                return
             request_id = f"{i}.{attempt}"
             try:
                 worker = self.workers.get(slot) or self._start_worker(slot)
@@ -541,6 +545,7 @@ def simulate_via_protocol(
     start = time.monotonic()
     last_report = start
     finished = False
+    restore_sigterm = _sigterm_as_exit()
     try:
         for th in threads:
             th.start()
@@ -558,6 +563,8 @@ def simulate_via_protocol(
             pool.kill_all()
             for th in threads:
                 th.join(timeout=SHUTDOWN_GRACE_S + 1)
+            pool.kill_all()  # a worker a thread started while we were stopping
+        restore_sigterm()
     if pool.error is not None:
         raise pool.error
     missing = np.flatnonzero(pool.status == "")
@@ -566,6 +573,26 @@ def simulate_via_protocol(
     if progress:
         _report(pool, n, time.monotonic() - start, final=True)
     return SimResult(pool.features, pool.status, pool.message, pool.clamped)
+
+
+def _sigterm_as_exit() -> Callable[[], None]:
+    """While the pool runs, turn SIGTERM (Snakemake cancelling a job) into SystemExit.
+
+    Workers live in their own process groups (so a timeout can kill a twin's
+    children), hence a SIGTERM to the job's group does not reach them; with
+    the default handler Python would die without killing them. Only replaces
+    the default handler, only in the main thread; returns the restorer.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return lambda: None
+
+    def handler(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    return lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _report(pool: _Pool, total: int, elapsed: float, final: bool = False) -> None:
