@@ -50,6 +50,8 @@ from twinfalsify.twins.protocol import (
 )
 
 PROGRESS_INTERVAL_S = 5.0  # at most one progress line per interval
+STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): start-up
+# (interpreter, engine libraries) is not simulation and must not eat the run's limit
 SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
 STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
 _UNITS = {f.name: f.unit for f in schema.FEATURE_TABLE}
@@ -338,6 +340,7 @@ class _Pool:
         self.command, self.env = command, env
         self.x0, self.doses, self.seeds, self.hours = x0, doses, seeds, hours
         self.timeout_s, self.retries, self.required = timeout_s, retries, tuple(features)
+        self.startup_timeout_s = max(timeout_s, STARTUP_TIMEOUT_S)
         n, t = doses.shape[:2]
         self.features = empty_features(n, t)
         self.status = np.full(n, "", dtype=object)
@@ -368,7 +371,7 @@ class _Pool:
         self.workers[slot] = worker
         where = f"twin {shlex.join(self.command)}"
         try:
-            msg = worker.ask({"op": "hello", "protocol": 1}, self.timeout_s)
+            msg = worker.ask({"op": "hello", "protocol": 1}, self.startup_timeout_s)
             hello = check_hello(msg, self.required, _UNITS)
         except ProtocolError as exc:
             self._drop_worker(slot)
@@ -381,7 +384,7 @@ class _Pool:
             tail = worker.tail()
             if first:
                 what = str(exc) if isinstance(exc, _WorkerDied) else (
-                    f"no hello answer within {self.timeout_s:g} s"
+                    f"no hello answer within {self.startup_timeout_s:g} s"
                     + (f"; stderr tail: {tail}" if tail else "")
                 )
                 raise ContractError(f"{where}: cannot start: {what}") from None
