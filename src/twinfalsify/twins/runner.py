@@ -388,6 +388,10 @@ class _Pool:
                     + (f"; stderr tail: {tail}" if tail else "")
                 )
                 raise ContractError(f"{where}: cannot start: {what}") from None
+            if isinstance(exc, _WorkerTimeout):
+                raise _WorkerTimeout(
+                    f"restarted worker gave no hello within {self.startup_timeout_s:g} s"
+                ) from None
             raise
         max_hours = hello["capabilities"]["max_hours"]
         if max_hours is not None and int(self.hours.max()) > max_hours:
@@ -438,13 +442,13 @@ class _Pool:
                     answer, request_id, hours, self.required,
                     worker.hello["declared_units"], FEATURES,
                 )
-            except _WorkerTimeout:
+            except _WorkerTimeout as exc:
                 hung = self.workers.get(slot)
                 self._drop_worker(slot)  # kill first: the stderr tail is then complete
                 tail = hung.tail() if hung is not None else ""
                 last_status = "timeout"
-                last_message = f"no answer within {self.timeout_s:g} s; worker killed" + (
-                    f"; stderr tail: {tail}" if tail else ""
+                last_message = (str(exc) or f"no answer within {self.timeout_s:g} s") + (
+                    "; worker killed" + (f"; stderr tail: {tail}" if tail else "")
                 )
                 continue
             except _WorkerDied as exc:
