@@ -21,7 +21,8 @@ import pytest
 from twinfalsify.schema import FEATURES, TWIN_STATUSES, ContractError
 from twinfalsify.twins import runner
 from twinfalsify.twins.faulty import expected
-from twinfalsify.twins.runner import ProtocolTwin, plan_groups, simulate_via_protocol
+from twinfalsify.twins.protocol_twin import ProtocolTwin
+from twinfalsify.twins.runner import plan_groups, simulate_via_protocol
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 ENV = {"PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
@@ -315,6 +316,7 @@ def test_progress_line(monkeypatch, capsys):
 
 def test_protocol_twin_interface():
     x0, doses, seeds = make_inputs(3)
+    assert runner.ProtocolTwin is ProtocolTwin  # also importable from twins.runner
     twin = ProtocolTwin("faulty", FAULTY, workers=2, env=ENV, progress=False)
     hello = twin.hello()
     assert hello["name"] == "faulty" and hello["protocol"] == 1

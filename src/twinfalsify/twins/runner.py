@@ -20,7 +20,6 @@ The protocol is described in docs/twin-protocol.md.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import queue
@@ -619,43 +618,11 @@ def _report(pool: _Pool, total: int, elapsed: float, final: bool = False) -> Non
     print(line, file=sys.stderr, flush=True)
 
 
-class ProtocolTwin:
-    """A Twin (twins.base.Twin) backed by a subprocess speaking the protocol."""
+def __getattr__(name: str) -> Any:
+    # ProtocolTwin lives in twins.protocol_twin (which imports this module);
+    # resolved lazily so both import orders work.
+    if name == "ProtocolTwin":
+        from twinfalsify.twins.protocol_twin import ProtocolTwin
 
-    def __init__(
-        self,
-        name: str,
-        command: Sequence[str],
-        *,
-        workers: int = 1,
-        timeout_s: float = 600.0,
-        retries: int = 2,
-        env: Mapping[str, str] | None = None,
-        progress: bool = True,
-    ) -> None:
-        self.name = name
-        self.command = list(command)
-        self.workers, self.timeout_s, self.retries = workers, timeout_s, retries
-        self.env = dict(env) if env else None
-        self.progress = progress
-
-    def hello(self) -> dict[str, Any]:
-        """Start one worker, return its (validated) hello answer, shut it down."""
-        full_env = {**os.environ, **self.env} if self.env else None
-        cmd = resolve_command(self.command, full_env)
-        pool = _Pool(cmd, full_env, np.empty((0, len(FEATURES))), np.empty((0, 1, 2)),
-                     np.empty(0, dtype=np.uint64), np.ones(1, dtype=int), self.timeout_s,
-                     self.retries, FEATURES)
-        worker = pool._start_worker(0)
-        try:
-            hello = {k: v for k, v in worker.hello.items() if k != "declared_units"}
-        finally:
-            pool.workers.pop(0, None)
-            worker.close()
-        return json.loads(json.dumps(hello))
-
-    def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
-        return simulate_via_protocol(
-            self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
-            retries=self.retries, progress=self.progress, env=self.env,
-        )
+        return ProtocolTwin
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
