@@ -253,8 +253,30 @@ def test_served_twin_subprocess_equals_in_process(tmp_path):
     np.testing.assert_array_equal(served.message, direct.message)
 
 
-def test_serve_main_with_registry():
+def test_serve_builtin_twin_subprocess_equals_in_process(tmp_path):
+    """``python -m twinfalsify.twins.serve`` with 2 workers == the builtin twin in process."""
     registry = pytest.importorskip(
         "twinfalsify.twins.registry", reason="twins.registry (the lead's factory) not merged yet"
     )
-    assert hasattr(registry, "make_twin")
+    (tmp_path / "twin_context.json").write_text(
+        json.dumps({"source": {"kind": "synthetic", "synthetic": {}}})
+    )
+    spec = {"kind": "biased", "shift": {"HR": 5.0}}
+    twin = registry.make_twin("biased", spec, tmp_path)
+    rng = np.random.default_rng(3)
+    mid = {"age": 60, "sex": 1, "weight": 80, "HR": 95, "SysBP": 115, "DiaBP": 60,
+           "MeanBP": 78, "RR": 20, "Temp_C": 37.2, "Potassium": 4.0, "Sodium": 139,
+           "Chloride": 104, "Glucose": 130, "Calcium": 8.3, "HCO3": 24, "paO2": 100,
+           "paCO2": 40, "Arterial_pH": 7.38}
+    n = 16
+    x0 = pd.DataFrame({f: mid[f] + (0.0 if f == "sex" else rng.normal(0, 1, n))
+                       for f in FEATURES})
+    doses = np.stack([rng.choice([0.0, 50.0, 400.0], (n, 4)),
+                      rng.choice([0.0, 0.1, 0.5], (n, 4))], axis=2)
+    seeds = (np.arange(n) // 4).astype(np.uint64)  # 4 sequences per X_0 draw
+    direct = twin.simulate(x0, doses, seeds)
+    cmd = [sys.executable, "-m", "twinfalsify.twins.serve", "biased", "--spec",
+           json.dumps(spec), "--context", str(tmp_path)]
+    served = simulate_via_protocol(cmd, x0, doses, seeds, workers=2, env=ENV, progress=False)
+    np.testing.assert_array_equal(served.status, direct.status)
+    np.testing.assert_array_equal(served.features, direct.features)
