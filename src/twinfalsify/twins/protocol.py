@@ -22,9 +22,13 @@ limit. See docs/twin-protocol.md for the full description.
 from __future__ import annotations
 
 import json
+import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass
 from typing import IO, Any
+
+import numpy as np
 
 PROTOCOL_VERSION = 1
 FAILURE_STATUSES = ("init_failed", "irreversible", "error")
@@ -93,3 +97,152 @@ def serve_forever(
         stdout.write(encode(answer))
         stdout.flush()
     return 0
+
+
+# ---------------------------------------------------------------------------
+# Client-side validation (used by twins.runner). Every check raises
+# ProtocolError with a message naming the field and the problem, so the
+# runner can record it as the run's "error" message.
+
+RESULT_STATUSES = ("ok", *FAILURE_STATUSES)
+
+
+def _is_number(value: Any) -> bool:
+    # bool is an int subclass in Python; a twin sending true/false for a
+    # feature value is broken, not numeric.
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def check_hello(
+    msg: dict[str, Any], required: Sequence[str], units: Mapping[str, str]
+) -> dict[str, Any]:
+    """Validate a hello answer; return it with defaults filled in.
+
+    The twin must speak protocol ``PROTOCOL_VERSION``, declare every feature in
+    ``required`` (it may declare more), and use, for every declared feature
+    that appears in ``units``, exactly that unit (the trajectory contract's
+    MIMIC units: a twin converts to them, the caller never guesses).
+    """
+    if msg.get("op") != "hello":
+        raise ProtocolError(f"expected a hello answer, got op {msg.get('op')!r}")
+    if msg.get("ok") is not True:
+        raise ProtocolError(f"hello answer has ok = {msg.get('ok')!r}: {msg.get('message', '')}")
+    if msg.get("protocol") != PROTOCOL_VERSION:
+        raise ProtocolError(
+            f"twin speaks protocol {msg.get('protocol')!r}; this runner speaks {PROTOCOL_VERSION}"
+        )
+    for key in ("name", "version"):
+        if not isinstance(msg.get(key), str):
+            raise ProtocolError(f"hello field {key!r} must be a string, got {msg.get(key)!r}")
+    feats = msg.get("features")
+    if not isinstance(feats, list) or not all(
+        isinstance(f, dict) and isinstance(f.get("name"), str) and isinstance(f.get("unit"), str)
+        for f in feats
+    ):
+        raise ProtocolError(
+            "hello field 'features' must be a list of {\"name\": str, \"unit\": str} objects"
+        )
+    declared = {f["name"]: f["unit"] for f in feats}
+    missing = [name for name in required if name not in declared]
+    if missing:
+        raise ProtocolError(f"hello does not declare required feature(s) {', '.join(missing)}")
+    wrong = [
+        f"{name} in {unit!r} (expected {units[name]!r})"
+        for name, unit in declared.items()
+        if name in units and unit != units[name]
+    ]
+    if wrong:
+        raise ProtocolError(f"hello declares wrong unit(s): {'; '.join(wrong)}")
+    caps = msg.get("capabilities", {})
+    if not isinstance(caps, dict):
+        raise ProtocolError(f"hello field 'capabilities' must be an object, got {caps!r}")
+    caps = {"save_restore": False, "max_hours": None, **caps}
+    if not isinstance(caps["save_restore"], bool):
+        raise ProtocolError("capability 'save_restore' must be true or false")
+    if caps["max_hours"] is not None and not (
+        isinstance(caps["max_hours"], int) and caps["max_hours"] >= 1
+    ):
+        raise ProtocolError("capability 'max_hours' must be a positive integer or absent")
+    return {**msg, "capabilities": caps, "declared_units": declared}
+
+
+@dataclass
+class CheckedResult:
+    """A validated simulate answer: ``values`` is (hours completed, len(columns))."""
+
+    status: str
+    message: str
+    values: np.ndarray
+    clamped: str  # JSON object text
+
+
+def check_result(
+    msg: dict[str, Any],
+    request_id: str,
+    hours: int,
+    required: Sequence[str],
+    declared: Collection[str],
+    columns: Sequence[str],
+) -> CheckedResult:
+    """Validate a simulate answer for ``request_id`` that asked for ``hours`` hours.
+
+    Rules (docs/twin-protocol.md, "result"): op is "result"; id echoes the
+    request; status is one of RESULT_STATUSES; "hours" is a list of at most
+    ``hours`` objects, exactly ``hours`` when status is "ok"; every hour object
+    holds a finite number for every feature in ``required`` and no feature the
+    twin did not declare in hello (``declared``); "clamped" is an object
+    {feature: [given, used]}. Values are returned in ``columns`` order, NaN for
+    a column the twin did not report.
+    """
+    if msg.get("op") != "result":
+        raise ProtocolError(
+            f"expected op 'result', got {msg.get('op')!r}: {msg.get('message', '')}"
+        )
+    if msg.get("id") != request_id:
+        raise ProtocolError(f"answer id {msg.get('id')!r} does not match request id {request_id!r}")
+    status = msg.get("status")
+    if status not in RESULT_STATUSES:
+        raise ProtocolError(
+            f"status {status!r} is not one of {', '.join(RESULT_STATUSES)}"
+        )
+    message = msg.get("message", "")
+    if not isinstance(message, str):
+        raise ProtocolError(f"field 'message' must be a string, got {type(message).__name__}")
+    rows = msg.get("hours")
+    if not isinstance(rows, list):
+        raise ProtocolError(f"field 'hours' must be a list, got {type(rows).__name__}")
+    if len(rows) > hours:
+        raise ProtocolError(f"{len(rows)} hours returned, more than the {hours} asked for")
+    if status == "ok" and len(rows) != hours:
+        raise ProtocolError(
+            f"status ok but only {len(rows)} of {hours} hours returned "
+            "(a twin that stops early must report init_failed, irreversible or error)"
+        )
+    index = {name: j for j, name in enumerate(columns)}
+    values = np.full((len(rows), len(columns)), np.nan)
+    declared_set = set(declared)
+    for h, row in enumerate(rows, start=1):
+        if not isinstance(row, dict):
+            raise ProtocolError(f"hour {h} must be an object of feature values")
+        unknown = sorted(set(row) - declared_set)
+        if unknown:
+            raise ProtocolError(f"hour {h} has unknown feature(s) {', '.join(unknown)}")
+        missing = [name for name in required if name not in row]
+        if missing:
+            raise ProtocolError(f"hour {h} lacks feature(s) {', '.join(missing)}")
+        for name, value in row.items():
+            if not _is_number(value) or not math.isfinite(value):
+                raise ProtocolError(
+                    f"hour {h} feature {name} is not a finite number: {value!r}"
+                )
+            if name in index:
+                values[h - 1, index[name]] = float(value)
+    clamped = msg.get("clamped", {})
+    if not isinstance(clamped, dict) or not all(
+        isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)
+        for v in clamped.values()
+    ):
+        raise ProtocolError(
+            f"field 'clamped' must be an object {{feature: [given, used]}}, got {clamped!r}"
+        )
+    return CheckedResult(status, message, values, json.dumps(clamped, sort_keys=True))

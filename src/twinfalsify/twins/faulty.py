@@ -1,0 +1,194 @@
+"""A protocol twin for fault injection: ``python -m twinfalsify.twins.faulty --mode ...``.
+
+Good runs return a deterministic, prefix-consistent trajectory: for feature f
+at the end of hour h,
+
+    x_h[f] = x0[f] + 0.5 h + 0.01 sum_{s<=h} iv_s + 10 sum_{s<=h} vaso_s + 0.001 (seed mod 97)
+
+(pure arithmetic so tests can check values exactly; see ``expected``).
+Faults are chosen per seed, so one study mixes good and bad runs
+deterministically. ``--mode MODE[:SELECTOR]`` may be repeated; SELECTOR is
+``all`` (default), a comma list of seeds ``3,7,11``, or ``%K=R`` (seed mod K
+equals R). The first matching mode wins. Per-run modes:
+
+    crash          exit (code 3) mid-request after writing half an answer line
+    crash_once     crash the first time a seed is seen (needs --state-dir), then work
+    hang           never answer (sleeps)
+    garbage        write a line that is not JSON
+    malformed      write truncated JSON
+    wrong_id       answer with another request id
+    wrong_features rename the feature HR to heart_rate in the hours
+    fewer_hours    status ok with one hour fewer than asked
+    non_numeric    a feature value is a string
+    irreversible   status irreversible during hour --irreversible-hour (hours before it kept)
+    init_failed    status init_failed, no hours
+    error          status error with a message
+    slow           sleep --delay seconds, then answer normally
+    clamp          clamp HR to at most 110 and report the clamp
+Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
+``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2),
+``no_hello`` (exit at once).
+
+Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
+times around the work), so tests can check parallelism from the twins' own
+timestamps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from twinfalsify.schema import FEATURE_TABLE, FEATURES
+from twinfalsify.twins.protocol import PROTOCOL_VERSION, ProtocolError, decode, encode
+
+RUN_MODES = (
+    "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
+    "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
+)
+TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello")
+
+
+def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int) -> list[dict]:
+    """The good-run answer: per-hour features (formula in the module docstring)."""
+    hours, iv, vaso = [], 0.0, 0.0
+    for h, (d_iv, d_vaso) in enumerate(doses, start=1):
+        iv += float(d_iv)
+        vaso += float(d_vaso)
+        shift = 0.5 * h + 0.01 * iv + 10.0 * vaso + 0.001 * (seed % 97)
+        hours.append({f: float(x0[f]) + shift for f in FEATURES})
+    return hours
+
+
+def _matches(selector: str, seed: int) -> bool:
+    if selector in ("", "all"):
+        return True
+    if selector.startswith("%"):
+        k, r = selector[1:].split("=")
+        return seed % int(k) == int(r)
+    return seed in {int(s) for s in selector.split(",") if s}
+
+
+def _parse_modes(specs: Sequence[str]) -> list[tuple[str, str]]:
+    out = []
+    for spec in specs:
+        mode, _, selector = spec.partition(":")
+        if mode not in RUN_MODES + TWIN_MODES:
+            raise SystemExit(f"faulty: unknown mode {mode!r}; choose from {RUN_MODES + TWIN_MODES}")
+        out.append((mode, selector))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="twinfalsify.twins.faulty", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--mode", action="append", default=[], help="MODE[:SELECTOR]")
+    parser.add_argument("--delay", type=float, default=1.0, help="seconds per slow run")
+    parser.add_argument("--irreversible-hour", type=int, default=2)
+    parser.add_argument("--state-dir", type=Path, help="marker files for crash_once")
+    parser.add_argument("--max-hours", type=int, default=None)
+    args = parser.parse_args(argv)
+    modes = _parse_modes(args.mode)
+    twin_modes = {m for m, _ in modes if m in TWIN_MODES}
+    print(f"faulty twin pid {os.getpid()} modes {args.mode}", file=sys.stderr, flush=True)
+    if "no_hello" in twin_modes:
+        print("faulty: no_hello mode, exiting", file=sys.stderr, flush=True)
+        return 4
+
+    out = sys.stdout
+
+    def send(message: dict[str, Any]) -> None:
+        out.write(encode(message))
+        out.flush()
+
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        try:
+            msg = decode(line)
+        except ProtocolError as exc:
+            print(f"faulty: {exc}", file=sys.stderr, flush=True)
+            continue
+        if msg["op"] == "shutdown":
+            send({"op": "bye"})
+            return 0
+        if msg["op"] == "hello":
+            feats = [{"name": f.name, "unit": f.unit} for f in FEATURE_TABLE]
+            if "bad_hello" in twin_modes:
+                feats = [f for f in feats if f["name"] != "HR"]
+            if "bad_units" in twin_modes:
+                feats = [{**f, "unit": "Hz"} if f["name"] == "HR" else f for f in feats]
+            caps: dict[str, Any] = {"save_restore": False}
+            if args.max_hours is not None:
+                caps["max_hours"] = args.max_hours
+            send({"op": "hello", "ok": True, "name": "faulty", "version": "1",
+                  "protocol": 2 if "bad_protocol" in twin_modes else PROTOCOL_VERSION,
+                  "features": feats, "capabilities": caps})
+            continue
+        if msg["op"] != "simulate":
+            send({"op": "error", "message": f"unknown op {msg['op']!r}"})
+            continue
+        seed = int(msg["seed"])
+        mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
+        t0 = time.time()
+        x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
+        hours = expected(x0, doses[:hours_asked], seed)
+        answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
+                                  "message": "", "hours": hours, "clamped": {}}
+        if mode == "crash_once":
+            if args.state_dir is None:
+                raise SystemExit("faulty: crash_once needs --state-dir")
+            marker = args.state_dir / f"seed-{seed}"
+            if not marker.exists():
+                marker.touch()
+                mode = "crash"
+        if mode == "crash":
+            print(f"faulty: crashing on seed {seed}", file=sys.stderr, flush=True)
+            out.write('{"op": "result", "id": ')  # half a line, then die
+            out.flush()
+            os._exit(3)
+        if mode == "hang":
+            print(f"faulty: hanging on seed {seed}", file=sys.stderr, flush=True)
+            time.sleep(3600)
+        if mode == "garbage":
+            out.write("this is not JSON, it is a log line on stdout\n")
+            out.flush()
+            continue
+        if mode == "malformed":
+            out.write(encode(answer)[:40] + "\n")
+            out.flush()
+            continue
+        if mode == "slow":
+            time.sleep(args.delay)
+        if mode == "wrong_id":
+            answer["id"] = f"{msg['id']}-other"
+        elif mode == "wrong_features":
+            answer["hours"] = [{("heart_rate" if k == "HR" else k): v for k, v in h.items()}
+                               for h in hours]
+        elif mode == "fewer_hours":
+            answer["hours"] = hours[:-1]
+        elif mode == "non_numeric":
+            answer["hours"] = [{**h, "HR": "fast"} for h in hours]
+        elif mode == "irreversible" and args.irreversible_hour <= hours_asked:
+            answer.update(status="irreversible", hours=hours[: args.irreversible_hour - 1],
+                          message=f"irreversible state during hour {args.irreversible_hour}")
+        elif mode == "init_failed":
+            answer.update(status="init_failed", hours=[], message="patient rejected")
+        elif mode == "error":
+            answer.update(status="error", hours=[], message="engine error")
+        elif mode == "clamp" and float(x0["HR"]) > 110:
+            answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
+            answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
+        stamp = f"pid={os.getpid()} start={t0:.6f} end={time.time():.6f}"
+        answer["message"] = f"{answer['message']} {stamp}".strip()
+        send(answer)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,62 @@
+"""ProtocolTwin: the Twin interface (twins.base.Twin) backed by a subprocess command.
+
+The command speaks the twin protocol v1 (docs/twin-protocol.md); runs go
+through ``twins.runner.simulate_via_protocol`` (worker pool, timeouts,
+restarts, retries, one status per run).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.schema import FEATURES
+from twinfalsify.twins.base import SimResult
+from twinfalsify.twins.runner import _Pool, resolve_command, simulate_via_protocol
+
+
+class ProtocolTwin:
+    """A Twin (twins.base.Twin) backed by a subprocess speaking the protocol."""
+
+    def __init__(
+        self,
+        name: str,
+        command: Sequence[str],
+        *,
+        workers: int = 1,
+        timeout_s: float = 600.0,
+        retries: int = 2,
+        env: Mapping[str, str] | None = None,
+        progress: bool = True,
+    ) -> None:
+        self.name = name
+        self.command = list(command)
+        self.workers, self.timeout_s, self.retries = workers, timeout_s, retries
+        self.env = dict(env) if env else None
+        self.progress = progress
+
+    def hello(self) -> dict[str, Any]:
+        """Start one worker, return its (validated) hello answer, shut it down."""
+        full_env = {**os.environ, **self.env} if self.env else None
+        cmd = resolve_command(self.command, full_env)
+        pool = _Pool(cmd, full_env, np.empty((0, len(FEATURES))), np.empty((0, 1, 2)),
+                     np.empty(0, dtype=np.uint64), np.ones(1, dtype=int), self.timeout_s,
+                     self.retries, FEATURES)
+        worker = pool._start_worker(0)
+        try:
+            hello = {k: v for k, v in worker.hello.items() if k != "declared_units"}
+        finally:
+            pool.workers.pop(0, None)
+            worker.close()
+        return json.loads(json.dumps(hello))
+
+    def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
+        return simulate_via_protocol(
+            self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
+            retries=self.retries, progress=self.progress, env=self.env,
+        )

@@ -1,0 +1,628 @@
+"""Protocol client: run a twin subprocess pool over the JSON Lines protocol (v1).
+
+``simulate_via_protocol`` starts ``workers`` copies of a twin command, streams
+one ``simulate`` request at a time to each, enforces a per-run timeout,
+restarts a worker that dies or hangs, retries the run a bounded number of
+times, validates every answer, and returns one status per requested run:
+``ok``, ``init_failed``, ``irreversible`` (reported by the twin), ``timeout``
+(no answer in time after every attempt) or ``error`` (the twin said so, the
+worker kept dying, or the answer broke the protocol). No run is ever dropped.
+
+Concurrency: one thread per worker, each owning one subprocess and blocking on
+its pipes (a reader thread per pipe turns stdout into a queue so that waits can
+time out), so N workers keep N cores busy with the GIL idle. Runs are grouped
+by seed (one seed = one X_0 draw) and each group goes to one worker, ordered
+lexicographically by dose sequence, so a twin with state save/restore sees
+shared dose prefixes consecutively and can branch them.
+
+The protocol is described in docs/twin-protocol.md.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify import schema
+from twinfalsify.schema import FEATURES, ContractError
+from twinfalsify.twins.base import SimResult, empty_features
+from twinfalsify.twins.protocol import (
+    ProtocolError,
+    check_hello,
+    check_result,
+    decode,
+    encode,
+)
+
+PROGRESS_INTERVAL_S = 5.0  # at most one progress line per interval
+STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): start-up
+# (interpreter, engine libraries) is not simulation and must not eat the run's limit
+SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
+STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
+_UNITS = {f.name: f.unit for f in schema.FEATURE_TABLE}
+
+
+class _WorkerDied(Exception):
+    """The worker process closed its stdout (exited or crashed)."""
+
+
+class _WorkerTimeout(Exception):
+    """No answer within the time limit."""
+
+
+def resolve_command(command: Sequence[str], env: Mapping[str, str] | None = None) -> list[str]:
+    """Check that the twin command can be started; return it as a list of strings.
+
+    Raises FileNotFoundError naming the command if its executable does not
+    exist (so a typo fails at once instead of after ``retries`` restarts).
+    """
+    if isinstance(command, str | bytes):
+        raise TypeError(
+            f"twin command must be a sequence of arguments, not a string: {command!r} "
+            "(use shlex.split)"
+        )
+    cmd = [os.fspath(c) if not isinstance(c, str) else c for c in command]
+    if not cmd or not cmd[0]:
+        raise ContractError("twin command is empty")
+    exe = cmd[0]
+    path = (env or os.environ).get("PATH", os.defpath)
+    if os.sep in exe or (os.altsep and os.altsep in exe):
+        if not os.path.isfile(exe):
+            raise FileNotFoundError(f"twin command not found: {exe!r} (command: {shlex.join(cmd)})")
+        if not os.access(exe, os.X_OK):
+            raise PermissionError(
+                f"twin command is not executable: {exe!r} (command: {shlex.join(cmd)})"
+            )
+    elif shutil.which(exe, path=path) is None:
+        raise FileNotFoundError(
+            f"twin command not found on PATH: {exe!r} (command: {shlex.join(cmd)})"
+        )
+    return cmd
+
+
+class _Worker:
+    """One twin subprocess with non-blocking (timed) line reads."""
+
+    def __init__(self, command: list[str], env: Mapping[str, str] | None) -> None:
+        self.command = command
+        try:
+            self.proc = subprocess.Popen(
+                command,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                encoding="utf-8",
+                errors="replace",
+                bufsize=1,
+                env=dict(env) if env is not None else None,
+                # Own process group: a kill also reaches the twin's children
+                # (e.g. a shell wrapper's engine process).
+                start_new_session=True,
+            )
+        except OSError as exc:
+            raise FileNotFoundError(
+                f"cannot start twin command {shlex.join(command)}: {exc}"
+            ) from exc
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
+        self.hello: dict[str, Any] = {}
+        self._threads = [
+            threading.Thread(target=self._read_stdout, daemon=True),
+            threading.Thread(target=self._read_stderr, daemon=True),
+        ]
+        for th in self._threads:
+            th.start()
+
+    def _read_stdout(self) -> None:
+        try:
+            assert self.proc.stdout is not None
+            for line in self.proc.stdout:
+                self.lines.put(line)
+        except (OSError, ValueError):
+            pass
+        finally:
+            self.lines.put(None)  # end of stream
+
+    def _read_stderr(self) -> None:
+        try:
+            assert self.proc.stderr is not None
+            for line in self.proc.stderr:
+                self.stderr_tail.append(line.rstrip("\n"))
+        except (OSError, ValueError):
+            pass
+
+    def tail(self) -> str:
+        """The last stderr lines, for error messages ('' if none)."""
+        self._threads[1].join(timeout=1.0)
+        lines = [ln for ln in self.stderr_tail if ln.strip()]
+        return " | ".join(lines[-5:])
+
+    def _died(self) -> _WorkerDied:
+        # End of stdout: the worker is finished either way. Kill what is left
+        # of its group (a worker that closed stdout but lives on gets -9; one
+        # that already exited keeps its own exit code), reap it, keep the tail.
+        self._terminate_group()
+        code = self.proc.returncode
+        tail = self.tail()
+        self._close()
+        return _WorkerDied(
+            f"worker exited with code {code}" + (f"; stderr tail: {tail}" if tail else "")
+        )
+
+    def ask(self, msg: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+        """Send one message and wait for the next non-blank line (decoded)."""
+        try:
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(encode(msg))
+            self.proc.stdin.flush()
+        except (OSError, ValueError):  # broken pipe: the worker is gone
+            raise self._died() from None
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                line = self.lines.get(timeout=max(remaining, 0.0))
+            except queue.Empty:
+                raise _WorkerTimeout() from None
+            if line is None:
+                raise self._died()
+            if not line.endswith("\n"):
+                # A last line without its newline: the worker died while
+                # writing (or closed stdout); that is a crash, not an answer.
+                died = self._died()
+                raise _WorkerDied(f"{died} (after a partial line {line[:80]!r})")
+            if line.strip():
+                return decode(line)
+
+    def _terminate_group(self) -> None:
+        # Only while the leader is not yet reaped is its pid (= the group id,
+        # start_new_session) guaranteed to still be ours.
+        if self.proc.returncode is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        self.proc.wait()
+
+    def kill(self) -> None:
+        """Kill the whole process group, reap it, and release the pipes."""
+        self._terminate_group()
+        self._close()
+
+    def close(self) -> None:
+        """Ask the worker to shut down; kill it if it does not exit in time."""
+        if self.proc.returncode is None:
+            try:
+                self.ask({"op": "shutdown"}, SHUTDOWN_GRACE_S)
+            except (_WorkerDied, _WorkerTimeout, ProtocolError):
+                pass
+            try:
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()
+            except (OSError, ValueError):
+                pass
+            try:
+                self.proc.wait(timeout=SHUTDOWN_GRACE_S)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill()
+
+    def _close(self) -> None:
+        for th in self._threads:
+            th.join(timeout=2.0)
+        for pipe in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
+            try:
+                if pipe is not None:
+                    pipe.close()
+            except (OSError, ValueError):
+                pass
+
+
+def _fmt_duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}h{m:02d}m{s:02d}s" if h else f"{m}m{s:02d}s"
+
+
+def _validate_inputs(
+    x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray, features: Sequence[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Check shapes and values; return (x0 values, doses, seeds, hours per run)."""
+    unknown = [f for f in features if f not in schema.FEATURE_BY_NAME]
+    if unknown:
+        raise ContractError(f"features: unknown feature name(s) {', '.join(unknown)}")
+    if not isinstance(x0, pd.DataFrame):
+        raise ContractError(f"x0 must be a pandas DataFrame, got {type(x0).__name__}")
+    schema.require_columns(x0, FEATURES, "x0")
+    doses = np.asarray(doses, dtype=float)
+    n = len(x0)
+    if doses.ndim != 3 or doses.shape[0] != n or doses.shape[2] != 2 or doses.shape[1] < 1:
+        raise ContractError(
+            f"doses must have shape (n={n}, t>=1, 2) (iv_fluid mL/h, vasopressor ug/kg/min); "
+            f"got {doses.shape}"
+        )
+    seeds = np.asarray(seeds)
+    if seeds.shape != (n,) or (n and not np.issubdtype(seeds.dtype, np.integer)):
+        raise ContractError(f"seeds must be an integer array of shape ({n},); got {seeds.shape} "
+                            f"{seeds.dtype}")
+    if n and np.issubdtype(seeds.dtype, np.signedinteger) and (seeds < 0).any():
+        raise ContractError("seeds must be >= 0 (uint64)")
+    values = np.empty((n, len(FEATURES)))
+    for j, col in enumerate(FEATURES):
+        if not pd.api.types.is_numeric_dtype(x0[col]):
+            raise ContractError(f"x0: column {col} is not numeric (dtype {x0[col].dtype})")
+        v = x0[col].to_numpy(dtype=float)
+        bad = ~np.isfinite(v)
+        if bad.any():
+            raise ContractError(
+                f"x0: column {col} has {int(bad.sum())} non-finite value(s), "
+                f"e.g. at row {int(np.flatnonzero(bad)[0])}"
+            )
+        values[:, j] = v
+    # A run may be shorter than t: trailing all-NaN hours are not simulated
+    # (lets one pool serve action sequences of different lengths).
+    t = doses.shape[1]
+    finite = np.isfinite(doses).all(axis=2)
+    all_nan = np.isnan(doses).all(axis=2)
+    hours = np.cumprod(finite, axis=1).sum(axis=1)
+    in_run = np.arange(t)[None, :] < hours[:, None]
+    bad = np.flatnonzero(~(in_run | all_nan).all(axis=1))
+    if bad.size:
+        raise ContractError(
+            f"doses: run {int(bad[0])} has non-finite doses before its last hour "
+            "(only trailing all-NaN hours are allowed, meaning a shorter run)"
+        )
+    if (hours < 1).any():
+        raise ContractError(f"doses: run {int(np.flatnonzero(hours < 1)[0])} has no hours")
+    neg = np.argwhere(np.nan_to_num(doses) < 0)
+    if neg.size:
+        i, h, k = neg[0]
+        raise ContractError(
+            f"doses: run {i} hour {h + 1} has a negative {schema.DOSES[k]} dose {doses[i, h, k]:g}"
+        )
+    return values, doses, seeds, hours
+
+
+def plan_groups(seeds: np.ndarray, doses: np.ndarray) -> list[np.ndarray]:
+    """Group run indices by seed; order each group by dose sequence.
+
+    Lexicographic order of the flattened dose sequences puts runs sharing a
+    dose prefix next to each other (a depth-first walk of the prefix tree).
+    Larger groups come first so that the pool's tail is short.
+    """
+    n = len(seeds)
+    if n == 0:
+        return []
+    flat = np.nan_to_num(doses.reshape(n, -1), nan=-1.0)  # shorter runs first
+    keys = tuple(flat[:, j] for j in reversed(range(flat.shape[1]))) + (seeds,)
+    order = np.lexsort(keys)  # np.lexsort: the LAST key is the primary one
+    s = seeds[order]
+    cuts = np.flatnonzero(s[1:] != s[:-1]) + 1
+    groups = np.split(order, cuts)
+    groups.sort(key=len, reverse=True)  # stable: ties stay in seed order
+    return groups
+
+
+class _Pool:
+    """State shared by the worker threads of one simulate_via_protocol call."""
+
+    def __init__(
+        self,
+        command: list[str],
+        env: Mapping[str, str] | None,
+        x0: np.ndarray,
+        doses: np.ndarray,
+        seeds: np.ndarray,
+        hours: np.ndarray,
+        timeout_s: float,
+        retries: int,
+        features: Sequence[str],
+    ) -> None:
+        self.command, self.env = command, env
+        self.x0, self.doses, self.seeds, self.hours = x0, doses, seeds, hours
+        self.timeout_s, self.retries, self.required = timeout_s, retries, tuple(features)
+        self.startup_timeout_s = max(timeout_s, STARTUP_TIMEOUT_S)
+        n, t = doses.shape[:2]
+        self.features = empty_features(n, t)
+        self.status = np.full(n, "", dtype=object)
+        self.message = np.full(n, "", dtype=object)
+        self.clamped = np.full(n, "{}", dtype=object)
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
+        self.tasks: deque[np.ndarray] = deque()
+        self.workers: dict[int, _Worker] = {}
+        self.started: set[int] = set()
+        self.counts: Counter[str] = Counter()
+
+    # -- workers ---------------------------------------------------------
+    def _start_worker(self, slot: int) -> _Worker:
+        """Start a worker and check its hello.
+
+        The first start of a slot must succeed (a twin that cannot say hello
+        is misconfigured: ContractError naming the command and its stderr).
+        A restart that dies or hangs counts as a failed attempt of the run.
+        A hello that breaks the contract always raises.
+        """
+        if self.stop.is_set():
+            raise _WorkerDied("pool is stopping")
+        first = slot not in self.started
+        self.started.add(slot)
+        worker = _Worker(self.command, self.env)
+        self.workers[slot] = worker
+        where = f"twin {shlex.join(self.command)}"
+        try:
+            msg = worker.ask({"op": "hello", "protocol": 1}, self.startup_timeout_s)
+            hello = check_hello(msg, self.required, _UNITS)
+        except ProtocolError as exc:
+            self._drop_worker(slot)
+            tail = worker.tail()
+            raise ContractError(
+                f"{where}: bad hello: {exc}" + (f"; stderr tail: {tail}" if tail else "")
+            ) from None
+        except (_WorkerDied, _WorkerTimeout) as exc:
+            self._drop_worker(slot)
+            tail = worker.tail()
+            if first:
+                what = str(exc) if isinstance(exc, _WorkerDied) else (
+                    f"no hello answer within {self.startup_timeout_s:g} s"
+                    + (f"; stderr tail: {tail}" if tail else "")
+                )
+                raise ContractError(f"{where}: cannot start: {what}") from None
+            if isinstance(exc, _WorkerTimeout):
+                raise _WorkerTimeout(
+                    f"restarted worker gave no hello within {self.startup_timeout_s:g} s"
+                ) from None
+            raise
+        max_hours = hello["capabilities"]["max_hours"]
+        if max_hours is not None and int(self.hours.max()) > max_hours:
+            self._drop_worker(slot)
+            raise ContractError(
+                f"{where}: runs ask for {int(self.hours.max())} hours; the twin's hello "
+                f"allows at most {max_hours}"
+            )
+        worker.hello = hello
+        return worker
+
+    def _drop_worker(self, slot: int) -> None:
+        worker = self.workers.pop(slot, None)
+        if worker is not None:
+            worker.kill()
+
+    # -- runs ------------------------------------------------------------
+    def _record(self, i: int, status: str, message: str, values: np.ndarray | None,
+                clamped: str = "{}") -> None:
+        if values is not None and len(values):
+            self.features[i, : len(values)] = values
+        self.status[i] = status
+        self.message[i] = message
+        self.clamped[i] = clamped
+        with self.lock:
+            self.counts[status] += 1
+
+    def _run_one(self, slot: int, i: int) -> None:
+        hours = int(self.hours[i])
+        attempts = self.retries + 1
+        last_status, last_message = "error", ""
+        for attempt in range(attempts):
+            if self.stop.is_set():  # interrupted: do not restart workers
+                return
+            request_id = f"{i}.{attempt}"
+            try:
+                worker = self.workers.get(slot) or self._start_worker(slot)
+                request = {
+                    "op": "simulate",
+                    "id": request_id,
+                    "x0": dict(zip(FEATURES, map(float, self.x0[i]), strict=True)),
+                    "doses": self.doses[i, :hours].tolist(),
+                    "hours": hours,
+                    "seed": int(self.seeds[i]),
+                }
+                answer = worker.ask(request, self.timeout_s)
+                checked = check_result(
+                    answer, request_id, hours, self.required,
+                    worker.hello["declared_units"], FEATURES,
+                )
+            except _WorkerTimeout as exc:
+                hung = self.workers.get(slot)
+                self._drop_worker(slot)  # kill first: the stderr tail is then complete
+                tail = hung.tail() if hung is not None else ""
+                last_status = "timeout"
+                last_message = (str(exc) or f"no answer within {self.timeout_s:g} s") + (
+                    "; worker killed" + (f"; stderr tail: {tail}" if tail else "")
+                )
+                continue
+            except _WorkerDied as exc:
+                self.workers.pop(slot, None)
+                last_status, last_message = "error", str(exc)
+                continue
+            except ProtocolError as exc:
+                # The stream can no longer be trusted to be in step: restart.
+                self._drop_worker(slot)
+                self._record(i, "error", f"malformed answer: {exc}", None)
+                return
+            if self.stop.is_set() and self.error is not None:
+                return
+            self._record(i, checked.status, checked.message, checked.values, checked.clamped)
+            return
+        self._record(
+            i, last_status, f"{last_message} (failed {attempts} attempt(s))", None
+        )
+
+    def thread_main(self, slot: int) -> None:
+        try:
+            while not self.stop.is_set():
+                with self.lock:
+                    if not self.tasks:
+                        break
+                    group = self.tasks.popleft()
+                for i in group:
+                    if self.stop.is_set():
+                        break
+                    self._run_one(slot, int(i))
+        except BaseException as exc:  # noqa: BLE001 - re-raised by the caller
+            with self.lock:
+                if self.error is None:
+                    self.error = exc
+            self.stop.set()
+        finally:
+            worker = self.workers.pop(slot, None)
+            if worker is not None:
+                if self.stop.is_set():
+                    worker.kill()
+                else:
+                    worker.close()
+
+    def kill_all(self) -> None:
+        for slot in list(self.workers):
+            worker = self.workers.get(slot)
+            if worker is not None:
+                worker.kill()
+
+
+def simulate_via_protocol(
+    command: Sequence[str],
+    x0: pd.DataFrame,
+    doses: np.ndarray,
+    seeds: np.ndarray,
+    *,
+    workers: int = 1,
+    timeout_s: float = 600.0,
+    retries: int = 2,
+    progress: bool = True,
+    env: Mapping[str, str] | None = None,
+    features: Sequence[str] = FEATURES,
+) -> SimResult:
+    """Simulate n runs with a protocol twin; return a SimResult in input order.
+
+    x0: n rows with every schema.FEATURES column (all are sent). doses:
+    (n, t, 2), IV fluid mL/h and vasopressor ug/kg/min during hours 1..t; a
+    run may end early with trailing all-NaN hours. seeds: (n,) non-negative
+    integers (uint64). env: variables added to (overriding) the current
+    environment of the worker processes.
+
+    Every run gets a status: the twin's (ok / init_failed / irreversible /
+    error), "timeout" when every attempt exceeded ``timeout_s`` (the worker
+    is killed and restarted between attempts), "error" when the worker died on
+    every attempt (message: exit code and stderr tail) or the answer broke the
+    protocol (message names the problem; not retried). Hours completed before
+    a failure are kept; NaN after. Raises FileNotFoundError for a command that
+    does not exist and ContractError for a twin whose hello is unusable.
+    """
+    if workers < 1:
+        raise ContractError(f"workers must be >= 1, got {workers}")
+    if retries < 0:
+        raise ContractError(f"retries must be >= 0, got {retries}")
+    if not timeout_s > 0:
+        raise ContractError(f"timeout_s must be > 0, got {timeout_s}")
+    full_env = {**os.environ, **{str(k): str(v) for k, v in env.items()}} if env else None
+    cmd = resolve_command(command, full_env)
+    x0_values, doses, seeds, hours = _validate_inputs(x0, doses, seeds, features)
+    n, t = doses.shape[:2]
+    if n == 0:
+        return SimResult(empty_features(0, t), np.full(0, "", dtype=object))
+
+    pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features)
+    groups = plan_groups(seeds, doses)
+    pool.tasks.extend(groups)
+    n_threads = min(workers, len(groups))
+    threads = [
+        threading.Thread(target=pool.thread_main, args=(slot,), name=f"twin-worker-{slot}")
+        for slot in range(n_threads)
+    ]
+    start = time.monotonic()
+    last_report = start
+    finished = False
+    restore_sigterm = _sigterm_as_exit()
+    try:
+        for th in threads:
+            th.start()
+        for th in threads:
+            while th.is_alive():
+                th.join(timeout=0.25)
+                now = time.monotonic()
+                if progress and now - last_report >= PROGRESS_INTERVAL_S:
+                    _report(pool, n, now - start)
+                    last_report = now
+        finished = True
+    finally:
+        if not finished:  # interrupted: unblock the threads by killing workers
+            pool.stop.set()
+            pool.kill_all()
+            for th in threads:
+                th.join(timeout=SHUTDOWN_GRACE_S + 1)
+            pool.kill_all()  # a worker a thread started while we were stopping
+        restore_sigterm()
+    if pool.error is not None:
+        raise pool.error
+    missing = np.flatnonzero(pool.status == "")
+    if missing.size:  # would be a bug in this module, never a silent drop
+        raise RuntimeError(f"twin runner lost {missing.size} run(s), e.g. run {missing[0]}")
+    if progress:
+        _report(pool, n, time.monotonic() - start, final=True)
+    return SimResult(pool.features, pool.status, pool.message, pool.clamped)
+
+
+def _sigterm_as_exit() -> Callable[[], None]:
+    """While the pool runs, turn SIGTERM (Snakemake cancelling a job) into SystemExit.
+
+    Workers live in their own process groups (so a timeout can kill a twin's
+    children), hence a SIGTERM to the job's group does not reach them; with
+    the default handler Python would die without killing them. Only replaces
+    the default handler, only in the main thread; returns the restorer.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return lambda: None
+
+    def handler(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    return lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _report(pool: _Pool, total: int, elapsed: float, final: bool = False) -> None:
+    with pool.lock:
+        counts = dict(pool.counts)
+    done = sum(counts.values())
+    failures = ", ".join(
+        f"{s} {counts[s]}" for s in schema.TWIN_STATUSES if s != "ok" and counts.get(s)
+    ) or "none"
+    rate = done / elapsed if elapsed > 0 else float("nan")
+    eta = (total - done) / rate if rate and rate > 0 else float("inf")
+    line = (
+        f"[twin] {done}/{total} runs ({100 * done / total:.1f}%) | failures: {failures} | "
+        f"{rate:.2f} runs/s | "
+        + (f"took {_fmt_duration(elapsed)}" if final else f"ETA {_fmt_duration(eta)}")
+    )
+    print(line, file=sys.stderr, flush=True)
+
+
+def __getattr__(name: str) -> Any:
+    # ProtocolTwin lives in twins.protocol_twin (which imports this module);
+    # resolved lazily so both import orders work.
+    if name == "ProtocolTwin":
+        from twinfalsify.twins.protocol_twin import ProtocolTwin
+
+        return ProtocolTwin
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
