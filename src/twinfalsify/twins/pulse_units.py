@@ -261,10 +261,12 @@ def clamp_x0(
     bmi = w / (height / 100) ** 2
     if bmi > bmi_hi:  # too heavy for this height: taller, up to 7 ft, then lighter
         height = min(100 * math.sqrt(w / bmi_hi), h_hi)
-        w = min(w, bmi_hi * (height / 100) ** 2)
+        if height == h_hi:  # only then can no height absorb the weight
+            w = min(w, bmi_hi * (height / 100) ** 2)
     elif bmi < bmi_lo:  # too light: shorter, down to 4.5 ft, then heavier
         height = max(100 * math.sqrt(w / bmi_lo), h_lo)
-        w = max(w, bmi_lo * (height / 100) ** 2)
+        if height == h_lo:
+            w = max(w, bmi_lo * (height / 100) ** 2)
     used["weight"] = w
     for f in INIT_FEATURES:
         if used[f] != vals[f]:
