@@ -98,7 +98,7 @@ def test_small_study_end_to_end_through_the_protocol():
     results = answers[1:-1]
     assert [r["id"] for r in results] == [r["id"] for r in reqs]  # no run dropped
     rows = []
-    for (pid, sid, t), res in zip(meta, results, strict=True):
+    for (pid, sid, _t), res in zip(meta, results, strict=True):
         for h, feats in enumerate(res["hours"], start=1):
             rows.append({"run_id": res["id"], "init_stay_id": pid, "actions": sid, "t": h,
                          **feats, "status": res["status"]})

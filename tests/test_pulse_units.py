@@ -1,4 +1,4 @@
-"""Pulse unit conversions, clamp table and physiological limits against recorded real Pulse 4.2 runs."""
+"""Pulse conversions, clamp table and physiological limits vs recorded real Pulse 4.2 runs."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from twinfalsify.twins import pulse_units as pu
 TESTS = Path(__file__).resolve().parent
 FIXTURE = TESTS / "fixtures" / "pulse-reference"
 sys.path.insert(0, str(TESTS / "fakes"))
-from pulse.engine.PulseEngine import patient_errors  # noqa: E402  (the fake, a test fixture)
 from pulse.cdm.patient import eSex  # noqa: E402
+from pulse.engine.PulseEngine import patient_errors  # noqa: E402  (the fake, a test fixture)
 
 
 def shared_dir() -> Path:

@@ -294,7 +294,8 @@ def init_violations(p: PatientInit, limits: InitLimits | None = None) -> list[st
     if not lim.bmi[0] <= bmi <= lim.bmi[1]:
         out.append(f"BMI {bmi:.4f} outside [{lim.bmi[0]:g}, {lim.bmi[1]:g}]")
     if not lim.height_cm[0] <= p.height_cm <= lim.height_cm[1]:
-        out.append(f"height {p.height_cm:g} cm outside [{lim.height_cm[0]:g}, {lim.height_cm[1]:g}]")
+        lo, hi = lim.height_cm
+        out.append(f"height {p.height_cm:g} cm outside [{lo:g}, {hi:g}]")
     return out
 
 

@@ -151,7 +151,7 @@ class RecordedPulse:
                 "hours": out, "clamped": {}}
 
     def _run(self, pid: str, doses: list[tuple[float, float]]) -> pd.DataFrame | None:
-        for run_id, g in self.runs[self.runs["patient_id"] == pid].groupby("run_id", sort=True):
+        for _run_id, g in self.runs[self.runs["patient_id"] == pid].groupby("run_id", sort=True):
             g = g.set_index("hour", drop=False)
             if all(h in g.index and _close(g.at[h, "iv_ml_h"], d[0])
                    and _close(g.at[h, "vaso_ug_kg_min"], d[1])
