@@ -1,0 +1,1 @@
+"""Fake pulse.cdm (see tests/fakes/pulse/__init__.py)."""

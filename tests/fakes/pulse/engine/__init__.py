@@ -1,0 +1,1 @@
+"""Fake pulse.engine (see tests/fakes/pulse/__init__.py)."""
