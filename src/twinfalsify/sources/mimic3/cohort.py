@@ -65,12 +65,14 @@ def _ts(col: str) -> str:
 
 def _stays(con) -> pd.DataFrame:
     df = con.execute(f"""
-        SELECT CAST(i.ICUSTAY_ID AS BIGINT) AS icustay_id, CAST(i.SUBJECT_ID AS BIGINT) AS subject_id,
+        SELECT CAST(i.ICUSTAY_ID AS BIGINT) AS icustay_id,
+               CAST(i.SUBJECT_ID AS BIGINT) AS subject_id,
                CAST(i.HADM_ID AS BIGINT) AS hadm_id, i.DBSOURCE AS dbsource,
                {_ts('i.INTIME')} AS intime, {_ts('i.OUTTIME')} AS outtime,
                {_ts('p.DOB')} AS dob, {_ts('p.DOD')} AS dod, p.GENDER AS gender,
                TRY_CAST(a.HOSPITAL_EXPIRE_FLAG AS INTEGER) AS hospital_expire_flag
-        FROM ICUSTAYS i JOIN PATIENTS p ON CAST(i.SUBJECT_ID AS BIGINT) = CAST(p.SUBJECT_ID AS BIGINT)
+        FROM ICUSTAYS i
+        JOIN PATIENTS p ON CAST(i.SUBJECT_ID AS BIGINT) = CAST(p.SUBJECT_ID AS BIGINT)
         LEFT JOIN ADMISSIONS a ON CAST(i.HADM_ID AS BIGINT) = CAST(a.HADM_ID AS BIGINT)
         ORDER BY icustay_id""").df()
     bad = df["intime"].isna() | df["dob"].isna()
@@ -150,7 +152,8 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) ->
     converted to contract units, outliers deleted. Filtering happens in DuckDB."""
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
-    win = pd.DataFrame({"icustay_id": stays.index.to_numpy(), "hadm_id": stays["hadm_id"].to_numpy(),
+    win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
+                        "hadm_id": stays["hadm_id"].to_numpy(),
                         "lo": lo.reindex(stays.index).to_numpy(),
                         "hi": hi.reindex(stays.index).to_numpy()})
     con.register("win", win)
