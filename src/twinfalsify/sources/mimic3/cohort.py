@@ -365,7 +365,7 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1)
     raw = raw.loc[ids]
     after_hold_missing = held[list(hourly.LABS)].isna()
     if len(ids):
-        held[list(schema.FEATURES[2:])] = held[list(schema.FEATURES[2:])]
+        # labs still missing after sample-and-hold: 1-NN over all non-demographic features
         x = held[list(schema.FEATURES[2:])].to_numpy(float)
         imp = hourly.knn_impute(x)
         held[list(schema.FEATURES[2:])] = imp
