@@ -1,0 +1,426 @@
+"""MIMIC-III v1.4 sepsis-3 cohort (AI-Clinician criteria with the paper's changes) as hourly
+trajectories over the first ``t_max`` + 1 ICU hours, plus a CONSORT table and missingness.
+
+Steps (each a row of the CONSORT table; docs/mimic3.md explains each and how it differs
+from the AI-Clinician code):
+ 1. all ICU stays;
+ 2. adults: age >= 18 at ICU admission (INTIME - DOB; MIMIC's shifted ages > 89 set to 91.4);
+ 3. suspected infection: a systemic antibiotic and a culture, culture <= 24 h after the
+    antibiotic or antibiotic <= 72 h after the culture (Seymour et al. 2016; onset = the
+    earlier of the pair, AI-Clinician's loop over antibiotics in time order);
+ 4. SOFA >= 2: the maximum over 4 h blocks of [onset - 48 h, onset + 24 h] of a SOFA score
+    from the components measurable in the raw tables (see ``sofa_blocks``), baseline 0;
+ 5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present);
+ 6. IV fluid / vasopressor intake documented (at least one INPUTEVENTS_MV/CV row);
+ 7. treatment withdrawal excluded (AI-Clinician's rule, adapted: see ``withdrawn``);
+ 8. ICU stay covers hours 0..t_max (OUTTIME >= INTIME + (t_max + 1) h);
+ 9. weight documented (a weight within 72 h before an hour, or charted during the stay);
+10. the paper's change: every vital (HR, SysBP, DiaBP, MeanBP, RR, Temp_C) present in each
+    hour t = 0..t_max after sample-and-hold.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify import schema
+from twinfalsify.schema import ContractError
+
+from . import doses, hourly
+from .tables import connect, data_table
+
+HOUR = pd.Timedelta(hours=1)
+AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
+
+
+@dataclass
+class Mimic3Cohort:
+    trajectories: pd.DataFrame  # schema.TRAJECTORY_COLUMNS
+    consort: pd.DataFrame  # step, description, n_stays, n_excluded
+    missingness: pd.DataFrame  # feature, t, n_missing_raw, share_missing_raw, n_imputed
+
+
+class _Consort:
+    def __init__(self) -> None:
+        self.rows: list[dict] = []
+
+    def add(self, step: str, description: str, ids) -> None:
+        n = len(ids)
+        prev = self.rows[-1]["n_stays"] if self.rows else n
+        self.rows.append({"step": step, "description": description, "n_stays": n,
+                          "n_excluded": prev - n})
+
+    def frame(self) -> pd.DataFrame:
+        return pd.DataFrame(self.rows, columns=["step", "description", "n_stays", "n_excluded"])
+
+
+def _ts(col: str) -> str:
+    return f"TRY_CAST({col} AS TIMESTAMP)"
+
+
+def _stays(con) -> pd.DataFrame:
+    df = con.execute(f"""
+        SELECT CAST(i.ICUSTAY_ID AS BIGINT) AS icustay_id,
+               CAST(i.SUBJECT_ID AS BIGINT) AS subject_id,
+               CAST(i.HADM_ID AS BIGINT) AS hadm_id, i.DBSOURCE AS dbsource,
+               {_ts('i.INTIME')} AS intime, {_ts('i.OUTTIME')} AS outtime,
+               {_ts('p.DOB')} AS dob, {_ts('p.DOD')} AS dod, p.GENDER AS gender,
+               TRY_CAST(a.HOSPITAL_EXPIRE_FLAG AS INTEGER) AS hospital_expire_flag
+        FROM ICUSTAYS i
+        JOIN PATIENTS p ON CAST(i.SUBJECT_ID AS BIGINT) = CAST(p.SUBJECT_ID AS BIGINT)
+        LEFT JOIN ADMISSIONS a ON CAST(i.HADM_ID AS BIGINT) = CAST(a.HADM_ID AS BIGINT)
+        ORDER BY icustay_id""").df()
+    bad = df["intime"].isna() | df["dob"].isna()
+    if bad.any():
+        raise ContractError(f"ICUSTAYS/PATIENTS: {int(bad.sum())} stay(s) without INTIME or DOB, "
+                            f"e.g. ICUSTAY_ID {df.loc[bad, 'icustay_id'].iloc[0]}")
+    age = (df["intime"] - df["dob"]).dt.total_seconds() / (365.25 * 86400)
+    df["age"] = np.where(age > 150, AGE_SHIFTED, age)
+    g = df["gender"].astype("string").str.upper().str.strip()
+    df["sex"] = np.where(g == "F", 1.0, np.where(g == "M", 0.0, np.nan))
+    return df.set_index("icustay_id", drop=False)
+
+
+def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
+    """Give each hospital-level event (hadm_id, time) an ICU stay: a stay of the same
+    admission with INTIME - 48 h <= time <= OUTTIME + 48 h, or the admission's only stay
+    (AI-Clinician's rule for antibiotics and cultures without ICUSTAY_ID)."""
+    s = stays[["icustay_id", "hadm_id", "intime", "outtime"]].reset_index(drop=True)
+    m = events.merge(s, on="hadm_id")
+    n_per_adm = s.groupby("hadm_id")["icustay_id"].transform("count")
+    only = s.assign(n=n_per_adm).set_index("icustay_id")["n"] == 1
+    inwin = (m["time"] >= m["intime"] - 48 * HOUR) & (m["time"] <= m["outtime"] + 48 * HOUR)
+    m = m[inwin | m["icustay_id"].map(only).to_numpy()]
+    return m[["icustay_id", "time"]]
+
+
+def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
+    """Onset of suspected infection per ICU stay (icustay_id -> timestamp).
+
+    Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE.
+    Cultures: MICROBIOLOGYEVENTS rows, time = CHARTTIME, else CHARTDATE.
+    Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
+    decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
+    culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def).
+    """
+    ab = data_table("antibiotics.csv")
+    inc = ab.loc[ab["kind"] == "name_include", "pattern"].str.lower().tolist()
+    exc = ab.loc[ab["kind"] == "name_exclude", "pattern"].str.lower().tolist()
+    routes = ab.loc[ab["kind"] == "route_exclude", "pattern"].str.upper().tolist()
+    con.register("abx_inc", pd.DataFrame({"p": inc}))
+    con.register("abx_exc", pd.DataFrame({"p": exc}))
+    con.register("abx_routes", pd.DataFrame({"r": routes}))
+    abx = con.execute(f"""
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, {_ts('STARTDATE')} AS time
+        FROM PRESCRIPTIONS pr
+        WHERE EXISTS (SELECT 1 FROM abx_inc WHERE contains(lower(pr.DRUG), abx_inc.p))
+          AND NOT EXISTS (SELECT 1 FROM abx_exc WHERE contains(lower(pr.DRUG), abx_exc.p))
+          AND upper(trim(coalesce(pr.ROUTE, ''))) NOT IN (SELECT r FROM abx_routes)
+          AND HADM_ID IS NOT NULL AND STARTDATE IS NOT NULL""").df()
+    cult = con.execute(f"""
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id,
+               coalesce({_ts('CHARTTIME')}, {_ts('CHARTDATE')}) AS time
+        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df().dropna()
+    a = _assign_to_stays(abx.dropna(), stays).drop_duplicates()
+    c = _assign_to_stays(cult, stays).drop_duplicates()
+    onset = {}
+    cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
+    for sid, g in a.groupby("icustay_id"):
+        cs = cgroups.get(sid)
+        if cs is None:
+            continue
+        for t_ab in np.sort(g["time"].to_numpy("datetime64[ns]")):
+            d = np.abs(cs - t_ab)
+            k = int(np.argmin(d))  # nearest culture (first one on ties, as MATLAB's min)
+            gap_h = d[k] / np.timedelta64(1, "h")
+            if gap_h <= 24 and t_ab <= cs[k]:
+                onset[sid] = pd.Timestamp(t_ab)
+                break
+            if gap_h <= 72 and t_ab >= cs[k]:
+                onset[sid] = pd.Timestamp(cs[k])
+                break
+    return pd.Series(onset, dtype="datetime64[ns]", name="onset")
+
+
+def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) -> pd.DataFrame:
+    """Charted and lab values of ``features`` for ``stays`` between lo and hi (per stay),
+    converted to contract units, outliers deleted. Filtering happens in DuckDB."""
+    items = hourly.item_map()
+    items = items[items["feature"].isin(features)]
+    win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
+                        "hadm_id": stays["hadm_id"].to_numpy(),
+                        "lo": lo.reindex(stays.index).to_numpy(),
+                        "hi": hi.reindex(stays.index).to_numpy()})
+    con.register("win", win)
+    con.register("items_chart", items.loc[items["source"] == "chartevents", ["itemid"]])
+    con.register("items_lab", items.loc[items["source"] == "labevents", ["itemid"]])
+    ce = con.execute(f"""
+        SELECT w.icustay_id, {_ts('c.CHARTTIME')} AS time, CAST(c.ITEMID AS BIGINT) AS itemid,
+               'chartevents' AS source, TRY_CAST(c.VALUENUM AS DOUBLE) AS value
+        FROM CHARTEVENTS c JOIN win w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE CAST(c.ITEMID AS BIGINT) IN (SELECT itemid FROM items_chart)
+          AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0
+          AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+    le = con.execute(f"""
+        SELECT w.icustay_id, {_ts('l.CHARTTIME')} AS time, CAST(l.ITEMID AS BIGINT) AS itemid,
+               'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value
+        FROM LABEVENTS l JOIN win w ON CAST(l.HADM_ID AS BIGINT) = w.hadm_id
+        WHERE CAST(l.ITEMID AS BIGINT) IN (SELECT itemid FROM items_lab)
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+    ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
+    ev = hourly.delete_outliers(hourly.convert_values(ev))
+    # GCS (MetaVision): eye + verbal + motor charted together -> total
+    comp = ev[ev["feature"] == "sofa_gcs_component"]
+    if len(comp):
+        g = comp.groupby(["icustay_id", "time"])["value"].agg(["sum", "count"]).reset_index()
+        g = g[g["count"] == 3]
+        ev = pd.concat([ev[ev["feature"] != "sofa_gcs_component"],
+                        pd.DataFrame({"icustay_id": g["icustay_id"], "time": g["time"],
+                                      "feature": "sofa_gcs", "value": g["sum"]})],
+                       ignore_index=True)
+    return ev
+
+
+def _inputs(con, ids, lo: pd.Series, hi: pd.Series) -> tuple[pd.DataFrame, ...]:
+    """Fluid and vasopressor rows (MetaVision, CareVue) of stays ``ids`` overlapping [lo, hi]."""
+    win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
+                        "lo": lo.reindex(ids).to_numpy(), "hi": hi.reindex(ids).to_numpy()})
+    con.register("win_in", win)
+    fl = data_table("fluids.csv")[["itemid"]].astype("int64")
+    va = data_table("vasopressors.csv")[["itemid"]].drop_duplicates().astype("int64")
+    con.register("fl_items", fl)
+    con.register("va_items", va)
+    mv_sel = f"""SELECT w.icustay_id, CAST(m.ITEMID AS BIGINT) AS itemid,
+               {_ts('m.STARTTIME')} AS starttime, {_ts('m.ENDTIME')} AS endtime,
+               TRY_CAST(m.AMOUNT AS DOUBLE) AS amount, TRY_CAST(m.RATE AS DOUBLE) AS rate,
+               m.RATEUOM AS rateuom
+        FROM INPUTEVENTS_MV m JOIN win_in w ON CAST(m.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE coalesce(m.STATUSDESCRIPTION, '') <> 'Rewritten'
+          AND {_ts('m.STARTTIME')} <= w.hi AND {_ts('m.ENDTIME')} >= w.lo"""
+    cv_sel = f"""SELECT w.icustay_id, CAST(c.ITEMID AS BIGINT) AS itemid,
+               {_ts('c.CHARTTIME')} AS charttime, TRY_CAST(c.AMOUNT AS DOUBLE) AS amount,
+               TRY_CAST(c.RATE AS DOUBLE) AS rate, c.RATEUOM AS rateuom
+        FROM INPUTEVENTS_CV c JOIN win_in w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi"""
+    def q(sel: str, items: str, notnull: str) -> pd.DataFrame:
+        return con.execute(f"SELECT * FROM ({sel}) WHERE itemid IN (SELECT itemid FROM {items})"
+                           f" AND {notnull} IS NOT NULL").df()
+    mv_f, cv_f = q(mv_sel, "fl_items", "amount"), q(cv_sel, "fl_items", "amount")
+    mv_v, cv_v = q(mv_sel, "va_items", "rate"), q(cv_sel, "va_items", "rate")
+    return mv_f, cv_f, mv_v, cv_v
+
+
+def sofa_score(b: pd.DataFrame) -> pd.Series:
+    """SOFA (Vincent et al. 1996) per row from block means, AI-Clinician's thresholds.
+
+    Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
+    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max), sofa_gcs,
+    sofa_creatinine (mg/dL). Urine output (renal) and ventilation are not used.
+    """
+    def pts(conds):
+        out = np.zeros(len(b))
+        for p, c in enumerate(conds):
+            out = np.where(np.asarray(c, dtype=bool), p, out)  # later (worse) wins
+        return out
+    pf, plt, bil = b["pf"], b["sofa_platelets"], b["sofa_bilirubin"]
+    mapp, vaso, gcs, cr = b["MeanBP"], b["vaso"].fillna(0), b["sofa_gcs"], b["sofa_creatinine"]
+    resp = pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100])
+    coag = pts([plt > 150, plt < 150, plt < 100, plt < 50, plt < 20])
+    liver = pts([bil < 1.2, bil >= 1.2, bil >= 2, bil >= 6, bil > 12])
+    cardio = pts([mapp >= 70, mapp < 70, mapp < 65, (vaso > 0) & (vaso <= 0.1), vaso > 0.1])
+    cns = pts([gcs > 14, gcs <= 14, gcs <= 12, gcs <= 9, gcs <= 5])
+    renal = pts([cr < 1.2, cr >= 1.2, cr >= 2, cr >= 3.5, cr > 5])
+    return pd.Series(resp + coag + liver + cardio + cns + renal, index=b.index)
+
+
+def max_sofa(con, stays: pd.DataFrame, onset: pd.Series) -> pd.Series:
+    """Max over 4 h blocks of [onset - 48 h, onset + 24 h) of ``sofa_score`` (block means,
+    no imputation; vasopressor = max NE-equivalent rate running in the block)."""
+    ids = onset.index
+    lo, hi = onset - 48 * HOUR, onset + 24 * HOUR
+    feats = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
+             "sofa_gcs_component", "sofa_creatinine")
+    ev = _events(con, stays.loc[ids], lo, hi, feats)
+    start = lo.rename("start")
+    ev = ev.assign(blk=((ev["time"].to_numpy() - start.reindex(ev["icustay_id"]).to_numpy())
+                        // (4 * HOUR)).astype("int64"))
+    b = ev.pivot_table(index=["icustay_id", "blk"], columns="feature", values="value",
+                       aggfunc="mean")
+    idx = pd.MultiIndex.from_product([ids, range(18)], names=["icustay_id", "blk"])
+    b = b.reindex(idx)
+    for c in feats:
+        if c not in b:
+            b[c] = np.nan
+    b["pf"] = b["paO2"] / (b["sofa_fio2"] / 100)
+    # vasopressor: max NE-equivalent rate running in each 4 h block
+    _, _, mv_v, cv_v = _inputs(con, ids, lo, hi)
+    vaso = doses.hourly_vasopressor(lo, mv_v, cv_v, 17, width=4 * HOUR)
+    vaso.index.names = idx.names
+    b["vaso"] = vaso.reindex(idx).to_numpy()
+    return sofa_score(b).groupby(level=0).max().rename("max_sofa")
+
+
+def withdrawn(stays: pd.DataFrame, mv_v: pd.DataFrame, cv_v: pd.DataFrame) -> pd.Index:
+    """Stays flagged as treatment withdrawal (AI-Clinician's 'early deaths from possible
+    withdrawals', adapted to whole ICU stays): died within 90 days of ICU admission,
+    ICU stay < 80 h (AI-Clinician: < 20 blocks of 4 h), maximum NE-equivalent vasopressor
+    rate during the stay > 0.3 ug/kg/min, and no vasopressor in the last 4 h of the stay.
+    (AI-Clinician also requires the last SOFA >= half the maximum SOFA; not used here.)
+    """
+    s = stays
+    died90 = s["dod"].notna() & ((s["dod"] - s["intime"]) <= pd.Timedelta(days=90))
+    short = (s["outtime"] - s["intime"]) < 80 * HOUR
+    ne = []
+    if len(mv_v):
+        ne.append(mv_v.assign(ne=doses.norepinephrine_equivalent(mv_v, "mv"),
+                              last=mv_v["endtime"])[["icustay_id", "ne", "last"]])
+    if len(cv_v):
+        ne.append(cv_v.assign(ne=doses.norepinephrine_equivalent(cv_v, "cv"),
+                              last=cv_v["charttime"])[["icustay_id", "ne", "last"]])
+    if not ne:
+        return pd.Index([], dtype="int64")
+    v = pd.concat(ne).dropna(subset=["ne"])
+    mx = v.groupby("icustay_id")["ne"].max()
+    late = v[(v["ne"] > 0)
+             & (v["last"] >= s["outtime"].reindex(v["icustay_id"]).to_numpy() - 4 * HOUR)]
+    on_at_end = pd.Index(late["icustay_id"].unique())
+    cand = s.index[died90 & short]
+    cand = cand[(mx.reindex(cand).fillna(0) > 0.3).to_numpy()]
+    return cand.difference(on_at_end)
+
+
+def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1) -> Mimic3Cohort:
+    """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
+
+    Trajectory row (stay, t): features over hour [INTIME + t h, INTIME + (t+1) h) (block
+    means, sample-and-hold, labs still missing imputed by 1-NN), iv_fluid (mL/h) and
+    vasopressor (ug/kg/min) given during that hour. See the module docstring for the steps.
+    """
+    folder = Path(folder)
+    con = connect(folder, threads=threads)
+    c = _Consort()
+    stays = _stays(con)
+    c.add("all_icu_stays", "ICU stays in ICUSTAYS", stays.index)
+    stays = stays[stays["age"] >= 18]
+    c.add("adult", "age >= 18 at ICU admission", stays.index)
+    onset = suspected_infection(con, stays)
+    stays = stays.loc[stays.index.intersection(onset.index)]
+    onset = onset.reindex(stays.index)
+    c.add("suspected_infection", "antibiotic + culture (culture <= 24 h after antibiotic, "
+          "or antibiotic <= 72 h after culture)", stays.index)
+    if len(stays):
+        sofa = max_sofa(con, stays, onset)
+        stays = stays.loc[sofa.index[sofa >= 2]]
+    c.add("sofa_ge_2", "max SOFA >= 2 in [onset - 48 h, onset + 24 h]", stays.index)
+    stays = stays[stays["hospital_expire_flag"].isin([0, 1])]
+    c.add("mortality_documented", "hospital mortality documented", stays.index)
+    # intake documented: any input event during the stay
+    con.register("ids_tmp", pd.DataFrame({"icustay_id": stays.index.to_numpy("int64")}))
+    documented = set(con.execute("""
+        SELECT DISTINCT CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
+        WHERE CAST(ICUSTAY_ID AS BIGINT) IN (SELECT icustay_id FROM ids_tmp)
+        UNION SELECT DISTINCT CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_CV
+        WHERE CAST(ICUSTAY_ID AS BIGINT) IN (SELECT icustay_id FROM ids_tmp)""").df().iloc[:, 0])
+    stays = stays[stays.index.isin(documented)]
+    c.add("intake_documented", "IV fluid / vasopressor charting present (INPUTEVENTS_MV/CV)",
+          stays.index)
+    _, _, mv_all, cv_all = _inputs(con, stays.index, stays["intime"], stays["outtime"])
+    stays = stays.drop(index=withdrawn(stays, mv_all, cv_all))
+    c.add("not_withdrawn", "treatment withdrawal excluded (AI-Clinician rule, adapted)",
+          stays.index)
+    stays = stays[stays["outtime"] >= stays["intime"] + (t_max + 1) * HOUR]
+    c.add("stay_covers_window", f"ICU stay lasts at least {t_max + 1} h", stays.index)
+
+    intime = stays["intime"]
+    max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
+    lo, hi = intime - max_hold * HOUR, intime + (t_max + 1) * HOUR
+    feats = ("weight", *hourly.VITALS, *hourly.LABS)
+    ev = _events(con, stays, lo, hi, feats) if len(stays) else pd.DataFrame(
+        columns=["icustay_id", "time", "feature", "value"])
+    raw = hourly.block_means(ev, intime, feats, t_max)
+    raw_bp = hourly.complete_bp(raw)
+    held = hourly.sample_and_hold(raw_bp, ev, intime)
+    # weight: if no weight within 72 h before an hour, the first weight charted in the stay
+    if len(stays):
+        wstay = _events(con, stays, intime, stays["outtime"], ("weight",))
+        first_w = wstay.sort_values("time").groupby("icustay_id")["value"].first()
+        keys = held.index.get_level_values("icustay_id")
+        held["weight"] = held["weight"].fillna(pd.Series(first_w.reindex(keys).to_numpy(),
+                                                         index=held.index))
+    has_w = held["weight"].notna().groupby(level=0).all()
+    stays = stays.loc[has_w.index[has_w]]
+    c.add("weight_documented", "weight documented for the stay", stays.index)
+    vit_ok = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
+    stays = stays.loc[vit_ok.index[vit_ok].intersection(stays.index)]
+    c.add("vitals_complete", f"every vital present in each hour t = 0..{t_max} "
+          "(after sample-and-hold; the paper's change)", stays.index)
+
+    ids = stays.index
+    held = held.loc[ids]
+    raw = raw.loc[ids]
+    after_hold_missing = held[list(hourly.LABS)].isna()
+    if len(ids):
+        # labs still missing after sample-and-hold: 1-NN over all non-demographic features
+        x = held[list(schema.FEATURES[2:])].to_numpy(float)
+        imp = hourly.knn_impute(x)
+        held[list(schema.FEATURES[2:])] = imp
+    # missingness report (before sample-and-hold), on the final cohort
+    miss_rows = []
+    n = len(ids)
+    for f in schema.FEATURES:
+        for t in range(t_max + 1):
+            if f in ("age", "sex"):
+                nm, ni = 0, 0
+            else:
+                col = raw[f].xs(t, level="t") if n else pd.Series(dtype=float)
+                nm = int(col.isna().sum())
+                ni = int(after_hold_missing[f].xs(t, level="t").sum()) if (
+                    n and f in after_hold_missing) else 0
+            miss_rows.append({"feature": f, "t": t, "n_missing_raw": nm,
+                              "share_missing_raw": nm / n if n else np.nan, "n_imputed": ni})
+    missingness = pd.DataFrame(miss_rows)
+
+    traj = held.reset_index()
+    traj["age"] = stays["age"].reindex(traj["icustay_id"]).to_numpy()
+    traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
+    mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, intime.loc[ids], hi.loc[ids])
+    fl = doses.hourly_fluid(intime.loc[ids], mv_f, cv_f, t_max)
+    va = doses.hourly_vasopressor(intime.loc[ids], mv_v, cv_v, t_max)
+    key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
+    traj["iv_fluid"] = fl.reindex(key).to_numpy() if len(ids) else []
+    traj["vasopressor"] = va.reindex(key).to_numpy() if len(ids) else []
+    traj = traj.rename(columns={"icustay_id": schema.STAY_ID})
+    traj = traj[list(schema.TRAJECTORY_COLUMNS)]
+    if len(traj):
+        traj = schema.validate_trajectories(traj, source=f"mimic3 extraction of {folder}",
+                                            t_max=t_max)
+    con.close()
+    return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
+                        missingness=missingness)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """CLI: python -m twinfalsify.sources.mimic3.cohort FOLDER OUTDIR."""
+    p = argparse.ArgumentParser(description=main.__doc__)
+    p.add_argument("folder")
+    p.add_argument("outdir")
+    p.add_argument("--t-max", type=int, default=schema.T_MAX)
+    p.add_argument("--threads", type=int, default=1)
+    a = p.parse_args(argv)
+    from .tables import resolve_mimic3_dir
+    res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads)
+    out = Path(a.outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    res.trajectories.to_parquet(out / "trajectories.parquet", index=False)
+    res.consort.to_csv(out / "cohort_consort.csv", index=False)
+    res.missingness.to_csv(out / "cohort_missingness.csv", index=False)
+    print(res.consort.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,174 @@
+"""Charted/lab events -> hourly feature blocks: unit conversion, outlier deletion,
+block means, blood-pressure completion, sample-and-hold, and 1-NN imputation of labs.
+
+All rules follow AI-Clinician (Komorowski et al. 2018; AIClinician_mimic3_dataset_160219.m)
+unless stated; the tables are in twinfalsify/data/mimic3/.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.schema import ContractError
+
+from .tables import data_table
+
+HOUR = pd.Timedelta(hours=1)
+VITALS = ("HR", "SysBP", "DiaBP", "MeanBP", "RR", "Temp_C")
+LABS = ("Potassium", "Sodium", "Chloride", "Glucose", "Calcium", "HCO3", "paO2", "paCO2",
+        "Arterial_pH")
+
+
+def item_map() -> pd.DataFrame:
+    """items.csv joined with unit_conversions.csv: itemid, source, feature, offset, scale."""
+    items = data_table("items.csv")
+    conv = data_table("unit_conversions.csv")
+    bad = set(items["conversion"]) - set(conv["conversion"])
+    if bad:
+        raise ContractError(f"items.csv: unknown conversion(s) {sorted(bad)} "
+                            f"(unit_conversions.csv defines {sorted(conv['conversion'])})")
+    m = items.merge(conv[["conversion", "offset", "scale"]], on="conversion")
+    dup = m.duplicated(["itemid", "source"])
+    if dup.any():
+        raise ContractError(f"items.csv: itemid listed twice: {m.loc[dup, 'itemid'].tolist()}")
+    return m
+
+
+def convert_values(ev: pd.DataFrame) -> pd.DataFrame:
+    """Apply unit conversions and AI-Clinician's temperature / FiO2 fixes.
+
+    ``ev`` has icustay_id, time, itemid, source, value (raw VALUENUM). Returns icustay_id,
+    time, feature, value in contract units. Conversion: value_out = (value + offset) * scale.
+    Temperature: a Celsius-item value > 70 is taken as Fahrenheit, a Fahrenheit-item value
+    in (25, 45) as Celsius (AI-Clinician's 'recorded in the wrong column' fix).
+    FiO2: percent-item values < 1 are fractions (x 100).
+    """
+    m = item_map()
+    e = ev.merge(m[["itemid", "source", "feature", "conversion", "offset", "scale"]],
+                 on=["itemid", "source"], how="inner")
+    v = e["value"].astype(float)
+    conv = e["conversion"].to_numpy(object).copy()
+    temp = e["feature"] == "Temp_C"
+    conv[(temp & (conv == "none") & (v > 70)).to_numpy()] = "F_to_C"
+    conv[(temp & (conv == "F_to_C") & (v > 25) & (v < 45)).to_numpy()] = "none"
+    cm = data_table("unit_conversions.csv").set_index("conversion")
+    off = cm.loc[conv, "offset"].to_numpy(float)
+    sc = cm.loc[conv, "scale"].to_numpy(float)
+    out = (v.to_numpy() + off) * sc
+    fio2_pct = ((e["feature"] == "sofa_fio2") & (e["conversion"] == "none") & (v < 1)).to_numpy()
+    out[fio2_pct] = v.to_numpy()[fio2_pct] * 100
+    return pd.DataFrame({"icustay_id": e["icustay_id"].to_numpy(), "time": e["time"].to_numpy(),
+                         "feature": e["feature"].to_numpy(), "value": out})
+
+
+def delete_outliers(ev: pd.DataFrame) -> pd.DataFrame:
+    """Drop values outside outlier_limits.csv (all rows for a feature apply, in turn)."""
+    lim = data_table("outlier_limits.csv")
+    keep = np.isfinite(ev["value"].to_numpy(float))
+    for _, r in lim.iterrows():
+        f = (ev["feature"] == r["feature"]).to_numpy()
+        v = ev["value"].to_numpy(float)
+        if pd.notna(r["lo"]):
+            keep &= ~(f & (v < float(r["lo"])))
+        if pd.notna(r["hi"]):
+            keep &= ~(f & (v > float(r["hi"])))
+    return ev[keep].reset_index(drop=True)
+
+
+def block_means(ev: pd.DataFrame, intime: pd.Series, features: tuple[str, ...], t_max: int
+                ) -> pd.DataFrame:
+    """Mean of each feature's values in block t = [INTIME + t h, INTIME + (t+1) h).
+
+    Returns a frame indexed by (icustay_id, t) for every stay in ``intime`` and t = 0..t_max,
+    one column per feature, NaN where nothing was measured (AI-Clinician averages all
+    values inside a time block, nanmean).
+    """
+    idx = pd.MultiIndex.from_product([intime.index, range(t_max + 1)], names=["icustay_id", "t"])
+    e = ev[ev["feature"].isin(features)]
+    e = e.assign(h=(e["time"].to_numpy() - intime.reindex(e["icustay_id"]).to_numpy()) / HOUR)
+    e = e[(e["h"] >= 0) & (e["h"] < t_max + 1)]
+    e = e.assign(t=np.floor(e["h"]).astype("int64"))
+    wide = e.pivot_table(index=["icustay_id", "t"], columns="feature", values="value",
+                         aggfunc="mean")
+    return wide.reindex(index=idx, columns=list(features))
+
+
+def complete_bp(b: pd.DataFrame) -> pd.DataFrame:
+    """Fill one missing BP of (SysBP, MeanBP, DiaBP) from the other two (AI-Clinician):
+    MAP = (Sys + 2 Dia) / 3, Dia = (3 MAP - Sys) / 2, Sys = 3 MAP - 2 Dia.
+    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.)"""
+    b = b.copy()
+    s, m, d = b["SysBP"], b["MeanBP"], b["DiaBP"]
+    b.loc[m.isna() & s.notna() & d.notna(), "MeanBP"] = (s + 2 * d) / 3
+    m = b["MeanBP"]
+    b.loc[d.isna() & s.notna() & m.notna(), "DiaBP"] = (3 * m - s) / 2
+    d = b["DiaBP"]
+    b.loc[s.isna() & m.notna() & d.notna(), "SysBP"] = 3 * m - 2 * d
+    return b
+
+
+def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -> pd.DataFrame:
+    """Fill a missing block value with the last measurement before the block start
+    (INTIME + t h) if it is at most hold_hours old (sample_and_hold.csv). Measurements
+    before ICU admission count (labs are drawn on the ward / in the ED).
+
+    Rule (AI-Clinician SAH.m): a value is carried forward for hold_hours after it was taken.
+    """
+    hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
+    out = blocks.copy()
+    keys = out.index.to_frame(index=False)
+    start = intime.reindex(keys["icustay_id"]).to_numpy() + keys["t"].to_numpy() * HOUR
+    for feat in out.columns:
+        if feat not in hold.index:
+            continue
+        miss = out[feat].isna().to_numpy()
+        if not miss.any():
+            continue
+        e = ev[ev["feature"] == feat].sort_values("time")
+        if e.empty:
+            continue
+        q = pd.DataFrame({"icustay_id": keys["icustay_id"].to_numpy()[miss],
+                          "start": start[miss], "row": np.flatnonzero(miss)})
+        q = q.sort_values("start")
+        e = e.rename(columns={"time": "start"})[["icustay_id", "start", "value"]]
+        # strictly before the block start: allow_exact_matches=False
+        hit = pd.merge_asof(q, e.assign(taken=e["start"]), on="start", by="icustay_id",
+                            allow_exact_matches=False, direction="backward")
+        ok = hit["value"].notna() & ((hit["start"] - hit["taken"]) <= hold[feat] * HOUR)
+        col = out[feat].to_numpy(copy=True)
+        col[hit.loc[ok, "row"].to_numpy()] = hit.loc[ok, "value"].to_numpy()
+        out[feat] = col
+    return out
+
+
+def knn_impute(x: np.ndarray, chunk: int = 10_000) -> np.ndarray:
+    """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
+    on chunks of 10,000 records).
+
+    For a row with missing column j, the donor is the row, among rows with column j observed,
+    minimising the mean over commonly observed columns of ((x_i - x_k) / sd)^2 (standardised
+    Euclidean distance, sd = column standard deviation over all rows; averaging over the
+    shared columns keeps rows with different missingness comparable). Rows are processed in
+    chunks of ``chunk`` rows, donors searched within the chunk. Columns with no observed
+    value in a chunk stay NaN.
+    """
+    x = np.asarray(x, dtype=float)
+    out = x.copy()
+    sd = np.nanstd(x, axis=0)
+    sd[~np.isfinite(sd) | (sd == 0)] = 1.0
+    for c0 in range(0, len(x), chunk):
+        xc = x[c0:c0 + chunk] / sd
+        obs = np.isfinite(xc)
+        for i in np.flatnonzero(~obs.all(axis=1)):
+            shared = obs & obs[i]
+            diff = np.where(shared, xc - np.where(obs[i], xc[i], 0.0), 0.0)
+            n = shared.sum(axis=1)
+            dist = np.where(n > 0, (diff ** 2).sum(axis=1) / np.maximum(n, 1), np.inf)
+            dist[i] = np.inf
+            for j in np.flatnonzero(~obs[i]):
+                cand = np.where(obs[:, j], dist, np.inf)
+                k = int(np.argmin(cand))
+                if np.isfinite(cand[k]):
+                    out[c0 + i, j] = x[c0 + k, j]
+    return out

@@ -1,0 +1,132 @@
+"""Locate MIMIC-III v1.4 tables on disk and expose them to DuckDB, plus the package's data tables.
+
+MIMIC-III is shipped by PhysioNet as upper-case ``TABLE.csv.gz`` files (the full
+database) or lower-case files (some mirrors); users also convert to Parquet.
+Every table is opened lazily as a DuckDB view, so CHARTEVENTS (~330 M rows in
+the full database) is only ever scanned by SQL filtered to the item ids and
+hours needed, never loaded whole into pandas.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import duckdb
+import pandas as pd
+
+from twinfalsify.schema import ContractError
+
+ENV_VAR = "TWINFALSIFY_MIMIC3_DIR"
+SUFFIXES = (".csv.gz", ".csv", ".parquet")
+
+# Tables the extraction reads, with the columns it uses (checked on open, so a
+# wrong file fails with a clear message rather than a DuckDB binder error).
+REQUIRED_COLUMNS: dict[str, tuple[str, ...]] = {
+    "PATIENTS": ("SUBJECT_ID", "GENDER", "DOB", "DOD"),
+    "ADMISSIONS": ("SUBJECT_ID", "HADM_ID", "ADMITTIME", "DISCHTIME", "DEATHTIME",
+                   "HOSPITAL_EXPIRE_FLAG"),
+    "ICUSTAYS": ("SUBJECT_ID", "HADM_ID", "ICUSTAY_ID", "DBSOURCE", "INTIME", "OUTTIME"),
+    "CHARTEVENTS": ("SUBJECT_ID", "HADM_ID", "ICUSTAY_ID", "ITEMID", "CHARTTIME", "VALUE",
+                    "VALUENUM", "ERROR"),
+    "LABEVENTS": ("SUBJECT_ID", "HADM_ID", "ITEMID", "CHARTTIME", "VALUENUM"),
+    "PRESCRIPTIONS": ("SUBJECT_ID", "HADM_ID", "ICUSTAY_ID", "STARTDATE", "DRUG", "ROUTE"),
+    "MICROBIOLOGYEVENTS": ("SUBJECT_ID", "HADM_ID", "CHARTDATE", "CHARTTIME"),
+    "INPUTEVENTS_MV": ("ICUSTAY_ID", "STARTTIME", "ENDTIME", "ITEMID", "AMOUNT", "RATE",
+                       "RATEUOM", "STATUSDESCRIPTION"),
+    "INPUTEVENTS_CV": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "AMOUNT", "RATE", "RATEUOM"),
+}
+
+
+def resolve_mimic3_dir(configured: str | os.PathLike[str] | None) -> Path:
+    """The MIMIC-III folder: env var ``TWINFALSIFY_MIMIC3_DIR`` if set, else ``configured``.
+
+    Raises ContractError naming the folder and the environment variable when
+    neither is given or the folder does not exist.
+    """
+    env = os.environ.get(ENV_VAR)
+    chosen = env if env else configured
+    origin = f"environment variable {ENV_VAR}" if env else "config (mimic3 path)"
+    if not chosen:
+        raise ContractError(
+            f"no MIMIC-III folder given: set the config path or the environment variable {ENV_VAR}"
+        )
+    path = Path(chosen).expanduser()
+    if not path.is_dir():
+        raise ContractError(
+            f"MIMIC-III folder {path} (from {origin}) does not exist or is not a folder; "
+            f"point the config or {ENV_VAR} at the folder holding PATIENTS.csv.gz, "
+            f"ICUSTAYS.csv.gz, CHARTEVENTS.csv.gz, ..."
+        )
+    return path
+
+
+def candidate_names(table: str) -> list[str]:
+    """File names tried for ``table``, in order (upper then lower case; csv.gz, csv, parquet)."""
+    return [f"{base}{suf}" for base in (table.upper(), table.lower()) for suf in SUFFIXES]
+
+
+def find_table(folder: Path, table: str) -> Path:
+    """Path of ``table`` inside ``folder``; ContractError naming folder and names tried."""
+    for name in candidate_names(table):
+        p = folder / name
+        if p.is_file():
+            return p
+    raise ContractError(
+        f"MIMIC-III table {table} not found in {folder}; tried {', '.join(candidate_names(table))}"
+    )
+
+
+def _reader(path: Path) -> str:
+    lit = "'" + str(path).replace("'", "''") + "'"
+    if path.name.endswith(".parquet"):
+        return f"read_parquet({lit})"
+    # all_varchar: types are cast explicitly in the queries, so type sniffing on a
+    # sample cannot mis-type a column (e.g. VALUE holding numbers then text).
+    return f"read_csv({lit}, header = true, all_varchar = true, quote = '\"', escape = '\"')"
+
+
+def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1
+            ) -> duckdb.DuckDBPyConnection:
+    """DuckDB connection with one view per MIMIC table (upper-case view names)."""
+    con = duckdb.connect(database=":memory:")
+    con.execute(f"SET threads = {int(threads)}")
+    for table in tables or tuple(REQUIRED_COLUMNS):
+        path = find_table(folder, table)
+        con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')
+        cols = {c.upper() for c in con.execute(f'SELECT * FROM "{table}" LIMIT 0').df().columns}
+        missing = [c for c in REQUIRED_COLUMNS.get(table, ()) if c not in cols]
+        if missing:
+            raise ContractError(
+                f"{path}: missing MIMIC-III v1.4 column(s) {', '.join(missing)} "
+                f"(found {', '.join(sorted(cols))})"
+            )
+    return con
+
+
+# ---------------------------------------------------------------- package data tables
+
+def _data_path(name: str) -> Path:
+    return Path(str(resources.files("twinfalsify") / "data" / "mimic3" / name))
+
+
+@cache
+def data_table(name: str) -> pd.DataFrame:
+    """One of the versioned CSV tables in ``twinfalsify/data/mimic3`` (``#`` lines are comments)."""
+    path = _data_path(name)
+    if not path.is_file():
+        raise ContractError(f"package data table {path} is missing")
+    df = pd.read_csv(path, comment="#")
+    if "meaning" not in df.columns:
+        raise ContractError(f"{path}: every data table needs a 'meaning' column")
+    return df
+
+
+def data_version(name: str) -> str:
+    """The version declared in the first comment line of a data table."""
+    first = _data_path(name).read_text().splitlines()[0]
+    if not first.startswith("# version:"):
+        raise ContractError(f"{_data_path(name)}: first line must be '# version: ...'")
+    return first.split(":", 1)[1].split(".", 1)[0].strip()

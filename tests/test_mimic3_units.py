@@ -1,0 +1,112 @@
+"""Unit tests of the MIMIC-III building blocks: conversions, outliers, blood pressure,
+sample-and-hold, 1-NN imputation, vasopressor equivalents, data tables."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twinfalsify.sources.mimic3 import doses, hourly
+from twinfalsify.sources.mimic3.tables import data_table, data_version
+
+T0 = pd.Timestamp("2150-01-01 10:00")
+
+
+def test_data_tables_have_meaning_and_version():
+    for name in ("items.csv", "unit_conversions.csv", "outlier_limits.csv", "sample_and_hold.csv",
+                 "vasopressors.csv", "fluids.csv", "antibiotics.csv"):
+        t = data_table(name)
+        assert t["meaning"].notna().all(), name
+        assert data_version(name) == "1"
+    items = data_table("items.csv")
+    assert not items.duplicated(["itemid", "source"]).any()
+
+
+def test_convert_values_temperature_weight_fio2():
+    ev = pd.DataFrame({
+        "icustay_id": 1, "time": T0, "source": "chartevents",
+        "itemid": [223761, 223761, 223762, 226531, 3582, 223835, 190],
+        "value": [212.0, 37.5, 98.6, 200.0, 32.0, 0.5, 0.4]})
+    out = hourly.convert_values(ev)["value"].to_numpy()
+    np.testing.assert_allclose(out, [
+        100.0,  # (212 - 32) * 5/9
+        37.5,  # F item holding a Celsius value (25 < v < 45): kept
+        37.0,  # C item holding Fahrenheit (> 70): converted
+        200 * 0.45359237, 32 * 0.028349523125,
+        50.0,  # percent item < 1 is a fraction
+        40.0])  # fraction item x 100
+
+
+def test_delete_outliers_bounds_inclusive():
+    ev = pd.DataFrame({"icustay_id": 1, "time": T0,
+                       "feature": ["HR", "HR", "Sodium", "Sodium", "Sodium", "Calcium"],
+                       "value": [250.0, 250.1, 95.0, 94.9, 178.1, 1.9]})
+    kept = hourly.delete_outliers(ev)
+    assert kept["value"].tolist() == [250.0, 95.0]
+
+
+def test_complete_bp_formulas():
+    b = pd.DataFrame({"SysBP": [120, 120, np.nan], "MeanBP": [np.nan, 90, 90],
+                      "DiaBP": [60, np.nan, 75]}, dtype=float)
+    c = hourly.complete_bp(b)
+    np.testing.assert_allclose(c["MeanBP"], [80, 90, 90])  # (120 + 2*60) / 3
+    np.testing.assert_allclose(c["DiaBP"], [60, 75, 75])  # (3*90 - 120) / 2
+    np.testing.assert_allclose(c["SysBP"], [120, 120, 120])  # 3*90 - 2*75
+
+
+def test_block_means_and_sample_and_hold_boundary():
+    intime = pd.Series([T0], index=pd.Index([7], name="icustay_id"))
+    h = pd.Timedelta(hours=1)
+    ev = pd.DataFrame({"icustay_id": 7, "feature": "HR",
+                       "time": [T0 + 0.25 * h, T0 + 0.75 * h, T0 + 1 * h],
+                       "value": [80.0, 100.0, 70.0]})
+    b = hourly.block_means(ev, intime, ("HR",), 4)
+    assert b["HR"].tolist()[:2] == [90.0, 70.0]  # mean within [0, 1); 1:00 belongs to t = 1
+    assert np.isnan(b["HR"].tolist()[2:]).all()
+    held = hourly.sample_and_hold(b, ev, intime)
+    # last value (1:00) held 2 h: block start 2:00 (1 h old) and 3:00 (2 h old) -> held;
+    # 4:00 (3 h old) -> missing
+    assert held["HR"].tolist()[:4] == [90.0, 70.0, 70.0, 70.0]
+    assert np.isnan(held["HR"].iloc[4])
+
+
+def test_knn_impute_matches_brute_force():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(40, 5)) * [1, 10, 100, 1, 5]
+    mask = rng.random(x.shape) < 0.2
+    mask[:, 0] = False
+    xm = np.where(mask, np.nan, x)
+    out = hourly.knn_impute(xm)
+    sd = np.nanstd(xm, axis=0)
+    for i, j in zip(*np.nonzero(mask), strict=True):
+        best, bestd = None, np.inf
+        for k in range(len(x)):
+            if k == i or mask[k, j]:
+                continue
+            sh = ~mask[i] & ~mask[k]
+            d = np.mean(((xm[i, sh] - xm[k, sh]) / sd[sh]) ** 2)
+            if d < bestd:
+                best, bestd = k, d
+        assert out[i, j] == xm[best, j]
+    assert np.array_equal(out[~mask], x[~mask])
+
+
+@pytest.mark.parametrize("system,item,rate,uom,expected", [
+    ("mv", 221906, 0.2, "mcg/kg/min", 0.2),
+    ("mv", 221906, 16, "mcg/min", 0.2),  # / 80 kg
+    ("mv", 222315, 0.04, "units/min", 0.2),  # x 5
+    ("mv", 222315, 2.4, "units/min", 0.2),  # > 0.2 taken as U/h: x 5/60
+    ("cv", 30051, 0.04, "Umin", 0.2),
+    ("cv", 30127, 100, "mcgkgmin", 45.0),  # x 0.45
+    ("cv", 30043, 10, "mcgkgmin", 0.1),  # x 0.01
+    ("mv", 221662, 800, "mcg/min", 0.1),  # x 0.01 / 80
+    ("mv", 221906, 1, "mg/hour", np.nan),  # no rule: not counted
+])
+def test_norepinephrine_equivalent(system, item, rate, uom, expected):
+    ev = pd.DataFrame({"itemid": [item], "rate": [rate], "rateuom": [uom]})
+    got = doses.norepinephrine_equivalent(ev, system).iloc[0]
+    if np.isnan(expected):
+        assert np.isnan(got)
+    else:
+        assert got == pytest.approx(expected, rel=1e-12)
