@@ -39,6 +39,12 @@ def main(sm):
         alpha=float(cfg.get("alpha", 0.05)),
         correction=cfg.get("correction", "holm"),
     )
+    untestable = int(((samples.n == 0) | (samples.nhat == 0)).sum())
+    if untestable:
+        log.warning(
+            "%d of %d parameter sets are untestable (n = 0 or nhat = 0: p = 1 by rule)",
+            untestable, len(hyps),
+        )
     log.info("rejections: %s", results.groupby(["method", "kind"])["rejected"].sum().to_dict())
     write_parquet(results, sm.output.results)
 

@@ -85,8 +85,10 @@ def test_hypotheses_match_a_direct_pandas_computation(data):
 def test_design_errors_are_clear():
     tiny = SyntheticWorld(n_stays=30).sample_observational(1)
     tiny["vasopressor"] = 0.0
+    bins = design.fit_action_bins(tiny)  # no vasopressor in D0: one unused bin, no crash
+    assert bins.vaso_edges == (0.0, 0.0, 0.0) and set(bins.vaso_medians) == {0.0}
     with pytest.raises(ContractError, match="non-zero vasopressor"):
-        design.fit_action_bins(tiny)
+        design.fit_action_bins(tiny, min_nonzero=8)
     with pytest.raises(ContractError, match="d0_fraction"):
         split_stays(tiny, 1.5, 0)
 

@@ -15,6 +15,7 @@ Paper's case-study choices (DESIGN.md):
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -31,6 +32,8 @@ from twinfalsify.schema import (
     ContractError,
     to_array,
 )
+
+log = logging.getLogger("twinfalsify")
 
 N_DOSE_BINS = 5
 WHOLE_SPACE = -1  # B-set code meaning "no restriction" (Manski hypotheses)
@@ -66,17 +69,31 @@ def _dose_bins(dose: np.ndarray, edges: tuple[float, float, float]) -> np.ndarra
     return np.where(dose > 0, bins, 0)
 
 
-def fit_action_bins(d0: pd.DataFrame, t_max: int = T_MAX, min_nonzero: int = 8) -> ActionBins:
-    """Quartile bins of non-zero D0 doses over the hours whose action is used (t < t_max)."""
+def fit_action_bins(d0: pd.DataFrame, t_max: int = T_MAX, min_nonzero: int = 0) -> ActionBins:
+    """Quartile bins of non-zero D0 doses over the hours whose action is used (t < t_max).
+
+    With fewer than 8 non-zero doses the quartiles are crude (a small cohort such as the
+    MIMIC-III demo): a warning is logged and the bins are formed anyway. With none, every
+    non-zero dose falls in bin 4 (edges 0) with a twin dose of 0: no D0 trajectory takes such
+    an action, so no hypothesis uses it. Fewer than ``min_nonzero`` (> 0) is an error.
+    """
     used = d0[d0[TIME] < t_max]
     parts = {}
     for dose in (IV_FLUID, VASOPRESSOR):
         nz = used.loc[used[dose] > 0, dose].to_numpy(float)
         if len(nz) < min_nonzero:
             raise ContractError(
-                f"design: D0 has only {len(nz)} non-zero {dose} dose(s) (need >= {min_nonzero} "
-                "to form quartile bins); enlarge split.d0_fraction or the cohort"
+                f"design: D0 has {len(nz)} non-zero {dose} dose(s), fewer than the "
+                f"{min_nonzero} needed to form its quartile bins; enlarge split.d0_fraction"
             )
+        if len(nz) == 0:
+            log.warning("design: no non-zero %s dose in D0: non-zero doses form one bin (4) "
+                        "that no hypothesis uses", dose)
+            parts[dose] = ((0.0, 0.0, 0.0), (0.0,) * N_DOSE_BINS)
+            continue
+        if len(nz) < 8:
+            log.warning("design: only %d non-zero %s doses in D0: quartile bins are crude",
+                        len(nz), dose)
         edges = tuple(float(q) for q in np.quantile(nz, [0.25, 0.5, 0.75]))
         b = _dose_bins(nz, edges)  # type: ignore[arg-type]
         medians = [0.0] + [
