@@ -52,6 +52,7 @@ bounded random variables by betting", JRSS-B 86(1):1-27; Ville (1939).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,31 +83,39 @@ class OrderedSide:
         )
 
 
-def _segment_cumsum(v: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Cumulative sums restarting at every group start."""
+def _segment_cumsum(v: np.ndarray, offsets: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Cumulative sums restarting at every group start (gid: group of every element)."""
     cs = np.cumsum(v)
-    sizes = np.diff(offsets)
     base = np.concatenate([[0.0], cs])[offsets[:-1]]
-    return cs - np.repeat(base, sizes)
+    return cs - base[gid]
+
+
+def _layout(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(group id, 1-based position in its group) of every element of a flat layout."""
+    sizes = np.diff(offsets)
+    gid = np.repeat(np.arange(len(sizes)), sizes)
+    t = np.arange(offsets[-1]) - offsets[:-1][gid] + 1
+    return gid, t
 
 
 def plugin_bets(
-    x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC
+    x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
+    layout: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
 
     ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only.
     """
     sizes = np.diff(offsets)
-    gid = np.repeat(np.arange(len(sizes)), sizes)
-    t = np.arange(len(x)) - offsets[:-1][gid] + 1  # 1-based position in its group
-    mu = (0.5 + _segment_cumsum(x, offsets)) / (t + 1)
-    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets)) / (t + 1)
+    gid, t = _layout(offsets) if layout is None else layout
+    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
+    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
     prev = np.empty_like(sig2)  # sigma2_{i-1}, with sigma2_0 = 1/4 at every group start
     prev[1:] = sig2[:-1]
     prev[offsets[:-1][sizes > 0]] = 0.25
-    n = sizes[gid].astype(float)
-    return np.minimum(c, np.sqrt(2.0 * np.log(1.0 / np.asarray(delta0, float)[gid]) / (n * prev)))
+    with np.errstate(divide="ignore"):
+        k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
+    return np.minimum(c, np.sqrt(k[gid] / prev))
 
 
 def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
@@ -133,7 +142,11 @@ def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool =
 
 
 def _order_keys(sizes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A uniformly random permutation within every group (flat indices), seeded."""
+    """A uniformly random permutation within every group (flat indices), seeded.
+
+    Sort by group id + U(0, 1) key: within a group the order is that of i.i.d.
+    uniform keys, i.e. uniformly random (ties have probability ~0).
+    """
     gid = np.repeat(np.arange(len(sizes), dtype=float), sizes)
     return np.argsort(gid + rng.random(len(gid)), kind="stable")
 
@@ -144,33 +157,44 @@ def ordered_sides(
     """(Y_lo, Y_up, twin) rescaled to [0, 1], in seeded random order, with their bets.
 
     The observational sample is materialised here (followers, then n - n_follow fill
-    values) because every position carries its own bet; Y_lo and Y_up share the order.
+    values) because every position carries its own bet; Y_lo and Y_up share the
+    order. The observational and twin orders use independent streams spawned from
+    ``seed`` and are built in two threads.
     """
-    rng = np.random.default_rng(seed)
     h = len(samples)
     width = samples.width
     if np.any(~(width > 0)):
         bad = np.flatnonzero(~(width > 0))[:5]
         raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
-    n, nf = samples.n.astype(np.int64), samples.n_follow
-    follow = samples.follow_f
-    offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
-    gid = np.repeat(np.arange(h), n)
-    pos = np.arange(len(gid)) - offs[:-1][gid]
-    is_f = pos < nf[gid]
-    xf = np.zeros(len(gid))
-    xf[is_f] = (follow.values - samples.y_lo[follow.group_ids()]) / width[follow.group_ids()]
-    perm = _order_keys(n, rng)
-    xf, fill = xf[perm], ~is_f[perm]
-    x_lo = np.where(fill, 0.0, xf)
-    x_up = np.where(fill, 1.0, xf)
-    twin = samples.twin_f
-    tg = twin.group_ids()
-    xt = ((twin.values - samples.y_lo[tg]) / width[tg])[_order_keys(twin.sizes, rng)]
     d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
-    lo = OrderedSide(x_lo, plugin_bets(x_lo, offs, d0, c), offs)
-    up = OrderedSide(x_up, plugin_bets(x_up, offs, d0, c), offs)
-    tw = OrderedSide(xt, plugin_bets(xt, twin.offsets, d0, c), twin.offsets)
+    rng_obs, rng_tw = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+
+    def obs() -> tuple[OrderedSide, OrderedSide]:
+        n, nf = samples.n.astype(np.int64), samples.n_follow
+        follow = samples.follow_f
+        offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+        lay = _layout(offs)  # shared by Y_lo and Y_up
+        gid, t = lay
+        is_f = t <= nf[gid]
+        xf = np.zeros(len(gid))
+        fg = follow.group_ids()
+        xf[is_f] = (follow.values - samples.y_lo[fg]) / width[fg]
+        perm = _order_keys(n, rng_obs)
+        xf, fill = xf[perm], ~is_f[perm]
+        x_lo = np.where(fill, 0.0, xf)
+        x_up = np.where(fill, 1.0, xf)
+        return (OrderedSide(x_lo, plugin_bets(x_lo, offs, d0, c, lay), offs),
+                OrderedSide(x_up, plugin_bets(x_up, offs, d0, c, lay), offs))
+
+    def twin() -> OrderedSide:
+        tw = samples.twin_f
+        tg = tw.group_ids()
+        xt = ((tw.values - samples.y_lo[tg]) / width[tg])[_order_keys(tw.sizes, rng_tw)]
+        return OrderedSide(xt, plugin_bets(xt, tw.offsets, d0, c), tw.offsets)
+
+    with ThreadPoolExecutor(2) as pool:
+        f_obs, f_tw = pool.submit(obs), pool.submit(twin)
+        (lo, up), tw = f_obs.result(), f_tw.result()
     return lo, up, tw
 
 
@@ -275,8 +299,10 @@ def betting_test(
     q_lo = (sub.q_lo_hat - sub.y_lo) / r
     q_up = (sub.q_up_hat - sub.y_lo) / r
     q_tw = (sub.q_twin_hat - sub.y_lo) / r
-    k_lo = _crossing(lo, tw, 0.5 * (q_lo + q_tw), running_max, c, tol, max_iter)
-    k_up = _crossing(tw, up, 0.5 * (q_up + q_tw), running_max, c, tol, max_iter)
+    with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
+        f_lo = pool.submit(_crossing, lo, tw, 0.5 * (q_lo + q_tw), running_max, c, tol, max_iter)
+        f_up = pool.submit(_crossing, tw, up, 0.5 * (q_up + q_tw), running_max, c, tol, max_iter)
+        k_lo, k_up = f_lo.result(), f_up.result()
     p_lo[ok] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
     p_up[ok] = np.minimum(1.0, 2.0 * np.exp(-k_up))
     return p_lo, p_up

@@ -38,6 +38,7 @@ Bootstrap Methods and their Application, ch. 5; Cornish et al. (2026) JMLR, appe
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,30 +118,72 @@ def _resample_sums(
     return out
 
 
+def _split_clipped(values: Ragged, y_lo: np.ndarray, y_up: np.ndarray):
+    """(interior values as a Ragged, count at y_lo, count at y_up) per group of clipped values."""
+    gid = values.group_ids()
+    at_lo = values.values <= y_lo[gid]
+    at_up = values.values >= y_up[gid]
+    inner = ~(at_lo | at_up)
+    h = len(values)
+    sizes = np.bincount(gid[inner], minlength=h)
+    interior = Ragged(values.values[inner], np.concatenate([[0], np.cumsum(sizes)]))
+    return interior, np.bincount(gid[at_lo], minlength=h), np.bincount(gid[at_up], minlength=h)
+
+
+def _binom(rng: np.random.Generator, total: np.ndarray, count: np.ndarray, pool: np.ndarray):
+    """Binomial(total, count / pool) draws, 0 where pool is 0 (count <= pool elementwise)."""
+    p = np.where(pool > 0, count / np.maximum(pool, 1), 0.0)
+    return rng.binomial(total, np.broadcast_to(p, total.shape))
+
+
+def _side_draws(
+    kind: str, samples: HypothesisSamples, rows: np.ndarray, b: int, rng: np.random.Generator
+) -> tuple[np.ndarray, ...]:
+    """Bootstrap means of one sample for ``rows``: ("obs" -> (lo, up), "twin" -> (twin,)).
+
+    A resample of the materialised sample is a multinomial count over the categories
+    {copies of the fill value (obs only), values clipped at y_lo, values clipped at
+    y_up, interior values}, then uniform draws with replacement among the interior
+    values only: the same law, with fewer random draws (clipped masses are common:
+    y_lo, y_up are quantiles of the outcome).
+    """
+    y_lo, y_up = samples.y_lo[rows, None], samples.y_up[rows, None]
+    ragged = samples.follow_f if kind == "obs" else samples.twin_f
+    interior, at_lo, at_up = _split_clipped(ragged, samples.y_lo, samples.y_up)
+    size = (samples.n if kind == "obs" else samples.nhat)[rows][:, None]
+    tot = np.broadcast_to(size, (rows.size, b))
+    n_in, n_lo, n_up = (interior.sizes[rows][:, None], at_lo[rows][:, None],
+                        at_up[rows][:, None])
+    c_in = _binom(rng, tot, n_in, size)
+    c_lo = _binom(rng, tot - c_in, n_lo, size - n_in)
+    c_up = _binom(rng, tot - c_in - c_lo, n_up, size - n_in - n_lo)
+    fill = tot - c_in - c_lo - c_up  # non-followers (obs); 0 for the twin
+    s = _resample_sums(interior, rows, c_in, rng) + c_lo * y_lo + c_up * y_up
+    if kind == "obs":
+        return (s + fill * y_lo) / size, (s + fill * y_up) / size
+    return (s / size,)
+
+
 def bootstrap_distributions(
     samples: HypothesisSamples, *, n_resamples: int = 100, min_n: int = 100, seed: int = 0
 ) -> BootstrapDistributions:
-    """Draw the B bootstrap means of Y_lo, Y_up and Y_twin for every eligible hypothesis."""
+    """Draw the B bootstrap means of Y_lo, Y_up and Y_twin for every eligible hypothesis.
+
+    The observational and twin resamples run in two threads with independent
+    streams spawned from ``seed`` (deterministic: same seed, same draws).
+    """
     if n_resamples < 1:
         raise ValueError(f"bootstrap: n_resamples must be >= 1, got {n_resamples}")
-    rng = np.random.default_rng(seed)
-    h = len(samples)
-    n, nhat, n_f = samples.n, samples.nhat, samples.n_follow
-    eligible = (n >= max(min_n, 1)) & (nhat >= max(min_n, 1))
+    h, b = len(samples), n_resamples
+    eligible = (samples.n >= max(min_n, 1)) & (samples.nhat >= max(min_n, 1))
     rows = np.flatnonzero(eligible)
-    b = n_resamples
-    lo = np.full((h, b), np.nan)
-    up = np.full((h, b), np.nan)
-    tw = np.full((h, b), np.nan)
+    lo, up, tw = (np.full((h, b), np.nan) for _ in range(3))
     if rows.size:
-        follow, twin = samples.follow_f, samples.twin_f
-        nr, nfr = n[rows], n_f[rows]
-        k = rng.binomial(nr[:, None], (nfr / nr)[:, None], size=(rows.size, b))
-        s = _resample_sums(follow, rows, k, rng)
-        lo[rows] = (s + (nr[:, None] - k) * samples.y_lo[rows, None]) / nr[:, None]
-        up[rows] = (s + (nr[:, None] - k) * samples.y_up[rows, None]) / nr[:, None]
-        kt = np.broadcast_to(nhat[rows, None], (rows.size, b))
-        tw[rows] = _resample_sums(twin, rows, np.ascontiguousarray(kt), rng) / nhat[rows, None]
+        rng_obs, rng_tw = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+        with ThreadPoolExecutor(2) as pool:
+            f_obs = pool.submit(_side_draws, "obs", samples, rows, b, rng_obs)
+            f_tw = pool.submit(_side_draws, "twin", samples, rows, b, rng_tw)
+            (lo[rows], up[rows]), (tw[rows],) = f_obs.result(), f_tw.result()
     return BootstrapDistributions(
         lo_hat=samples.q_lo_hat, up_hat=samples.q_up_hat, twin_hat=samples.q_twin_hat,
         lo=np.sort(lo, axis=1), up=np.sort(up, axis=1), twin=np.sort(tw, axis=1),
