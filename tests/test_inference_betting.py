@@ -185,7 +185,7 @@ def test_seeded_and_refusals():
 def test_tighter_than_hoeffding_for_moderate_variance(n):
     """Beta(2, 2) (variance R^2/20), n >= 200, levels 1e-4 and 0.05: never wider than Hoeffding."""
     rng = np.random.default_rng(n)
-    s = _replicates(rng, 300, n, 1.0, lambda k: rng.beta(2, 2, k), lambda k: rng.beta(2, 2, k))
+    s = _replicates(rng, 200, n, 1.0, lambda k: rng.beta(2, 2, k), lambda k: rng.beta(2, 2, k))
     for alpha in (1e-4, 0.05):
         b = betting_bounds(s, alpha, tune_alpha=alpha)
         hoef = hoeffding_radius(1.0, n, alpha)

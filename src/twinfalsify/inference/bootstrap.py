@@ -102,15 +102,16 @@ def _resample_sums(
         if m > 0:
             r = block.size
             size_i = sizes[block].astype(np.int64)
-            size_b = size_i.astype(np.uint64)
             # padded values of the block's groups (r, width); padding never drawn
             col = np.arange(int(size_i.max()))
             src = values.offsets[rows[block]][:, None] + np.minimum(
                 col, np.maximum(size_i, 1)[:, None] - 1
             )
             padded = values.values[np.minimum(src, max(len(values.values) - 1, 0))]
-            u = rng.integers(0, 1 << 32, size=(r, n_b * m), dtype=np.uint64)
-            idx = ((u * size_b[:, None]) >> np.uint64(32)).astype(np.intp)
+            # int64 throughout: u < 2^32 and size < 2^31, so u * size < 2^63 (no casts)
+            idx = rng.integers(0, 1 << 32, size=(r, n_b * m), dtype=np.int64)
+            idx *= size_i[:, None]
+            idx >>= 32
             g = np.take_along_axis(padded, idx, axis=1).reshape(r, n_b, m)
             keep = np.arange(m) < counts[block][:, :, None]
             out[block] = np.where(keep, g, 0.0).sum(axis=2)
