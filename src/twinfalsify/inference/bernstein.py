@@ -35,19 +35,24 @@ def _group_sq_dev(values: Ragged, center: np.ndarray) -> np.ndarray:
     return np.bincount(gid, weights=(values.values - c[gid]) ** 2, minlength=len(values))
 
 
-def sample_variances(samples: HypothesisSamples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unbiased sample variances of Y_lo, Y_up and Y_twin (NaN when fewer than 2 values)."""
+def _means_and_variances(samples: HypothesisSamples):
+    """(means, unbiased variances) of Y_lo, Y_up, Y_twin; clips each side once."""
     n, nf, nhat = samples.n.astype(float), samples.n_follow, samples.nhat.astype(float)
     follow, twin = samples.follow_f, samples.twin_f
-    out = []
-    for fill, mean in ((samples.y_lo, samples.q_lo_hat), (samples.y_up, samples.q_up_hat)):
-        ss = _group_sq_dev(follow, mean) + (n - nf) * (fill - np.nan_to_num(mean)) ** 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out.append(np.where(n >= 2, ss / (n - 1), np.nan))
-    ss_t = _group_sq_dev(twin, samples.q_twin_hat)
+    fs, ts = follow.sums(), twin.sums()
     with np.errstate(invalid="ignore", divide="ignore"):
-        out.append(np.where(nhat >= 2, ss_t / (nhat - 1), np.nan))
-    return out[0], out[1], out[2]
+        means = ((fs + (n - nf) * samples.y_lo) / n, (fs + (n - nf) * samples.y_up) / n, ts / nhat)
+        variances = []
+        for fill, mean in ((samples.y_lo, means[0]), (samples.y_up, means[1])):
+            ss = _group_sq_dev(follow, mean) + (n - nf) * (fill - np.nan_to_num(mean)) ** 2
+            variances.append(np.where(n >= 2, ss / (n - 1), np.nan))
+        variances.append(np.where(nhat >= 2, _group_sq_dev(twin, means[2]) / (nhat - 1), np.nan))
+    return means, tuple(variances)
+
+
+def sample_variances(samples: HypothesisSamples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unbiased sample variances of Y_lo, Y_up and Y_twin (NaN when fewer than 2 values)."""
+    return _means_and_variances(samples)[1]
 
 
 def bernstein_radius(
@@ -73,7 +78,7 @@ def _pvalue(d, a, b) -> np.ndarray:
 
 def bernstein_test(samples: HypothesisSamples) -> tuple[np.ndarray, np.ndarray]:
     """Empirical-Bernstein p-values (p_lo, p_up), shape (H,) each (see module doc)."""
-    v_lo, v_up, v_tw = sample_variances(samples)
+    (q_lo, q_up, q_tw), (v_lo, v_up, v_tw) = _means_and_variances(samples)
     n, nhat, r = samples.n.astype(float), samples.nhat.astype(float), samples.width
     with np.errstate(invalid="ignore", divide="ignore"):
         b = 7 * r / (3 * (n - 1)) + 7 * r / (3 * (nhat - 1))
@@ -81,6 +86,6 @@ def bernstein_test(samples: HypothesisSamples) -> tuple[np.ndarray, np.ndarray]:
         a_up = np.sqrt(2 * v_up / n) + np.sqrt(2 * v_tw / nhat)
     valid = (n >= 2) & (nhat >= 2)
     b = np.where(valid, b, np.nan)
-    p_lo = _pvalue(samples.q_lo_hat - samples.q_twin_hat, a_lo, b)
-    p_up = _pvalue(samples.q_twin_hat - samples.q_up_hat, a_up, b)
+    p_lo = _pvalue(q_lo - q_tw, a_lo, b)
+    p_up = _pvalue(q_tw - q_up, a_up, b)
     return p_lo, p_up
