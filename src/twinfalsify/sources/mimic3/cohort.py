@@ -421,7 +421,9 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     # weight: if no weight within 72 h before an hour, the first weight charted in the stay
     if len(stays):
         wstay = _events(con, stays, stays["intime"], stays["outtime"], ("weight",))
-        first_w = wstay.sort_values("time").groupby("icustay_id")["value"].first()
+        # the first charting instant's weights, averaged (kg and lb are often charted together)
+        first_t = wstay.groupby("icustay_id")["time"].transform("min")
+        first_w = wstay[wstay["time"] == first_t].groupby("icustay_id")["value"].mean()
         keys = held.index.get_level_values("icustay_id")
         held["weight"] = held["weight"].fillna(pd.Series(first_w.reindex(keys).to_numpy(),
                                                          index=held.index))

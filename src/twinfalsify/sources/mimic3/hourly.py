@@ -114,6 +114,7 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     before ICU admission count (labs are drawn on the ward / in the ED).
 
     Rule (AI-Clinician SAH.m): a value is carried forward for hold_hours after it was taken.
+    Several values taken at the same last instant are averaged.
     """
     hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
     out = blocks.copy()
@@ -125,7 +126,10 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
         miss = out[feat].isna().to_numpy()
         if not miss.any():
             continue
-        e = ev[ev["feature"] == feat].sort_values("time")
+        # values charted at the same instant (e.g. a weight in kg and in lb) are averaged,
+        # as within a block; otherwise the held value would depend on row order
+        e = (ev[ev["feature"] == feat].groupby(["icustay_id", "time"], as_index=False)["value"]
+             .mean().sort_values("time", kind="stable"))
         if e.empty:
             continue
         q = pd.DataFrame({"icustay_id": keys["icustay_id"].to_numpy()[miss],
