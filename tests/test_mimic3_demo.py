@@ -19,8 +19,10 @@ def _shared() -> Path:
 
 
 DEMO = _shared() / "data" / "mimic-iii-demo"
-pytestmark = pytest.mark.skipif(not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
-                                reason=f"MIMIC-III demo not present at {DEMO}")
+# two whole-demo extractions: ~8 s on an idle machine, more under load
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
+                                 reason=f"MIMIC-III demo not present at {DEMO}")]
 # documented in docs/mimic3.md (CONSORT of the demo under each anchor)
 COUNTS = {
     "intime": [136, 135, 94, 81, 81, 79, 76, 76, 75, 73, 27],
