@@ -141,3 +141,18 @@ def test_realign_shifts_blocks_by_the_anchor():
     # stay 10: blocks 0..2 -> t 0..2; stay 20: blocks 2..4 -> t 0..2; stay 30: no anchor
     assert out.index.tolist() == [(10, 0), (10, 1), (10, 2), (20, 0), (20, 1), (20, 2)]
     assert out["v"].tolist() == [0, 1, 2, 7, 8, 9]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
+    rng = np.random.default_rng(seed)
+    # integer-valued columns and duplicated rows make many exact distance ties
+    x = rng.integers(0, 4, size=(300, 6)).astype(float) * [1, 10, 100, 1, 5, 0.1]
+    x[150:200] = x[100:150]
+    x[rng.random(x.shape) < 0.3] = np.nan
+    x[7] = np.nan  # a row with nothing observed stays NaN
+    for chunk, batch in ((10_000, 512), (120, 7)):
+        fast = hourly.knn_impute(x, chunk=chunk, batch=batch)
+        slow = hourly._knn_impute_direct(x, chunk=chunk)
+        np.testing.assert_array_equal(fast, slow)
+    assert np.isnan(fast[7]).all()
