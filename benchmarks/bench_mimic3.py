@@ -12,23 +12,29 @@ after INTIME for 12 h (so both anchors have work), temperature every 3 h, a weig
 INTIME - 1 h and + 3 h with 25 % of values missing (1-NN imputation has work); an NaCl
 infusion and a norepinephrine infusion (MV) or charted rates (CV).
 
-Run:  PYTHONPATH=src python benchmarks/bench_mimic3.py --n 1000 2000 5000
+Run:  PYTHONPATH=src python benchmarks/bench_mimic3.py --n 1000 2000 5000 --knn-rows 10000 20000
 """
 
 from __future__ import annotations
 
-import argparse
-import cProfile
-import pstats
-import tempfile
-import time
-from pathlib import Path
+import os
 
-import numpy as np
-import pandas as pd
+# one BLAS thread: on a shared, loaded machine a second spinning BLAS thread makes the matrix
+# products of the 1-NN imputation 2x slower and the timings erratic (measured)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from twinfalsify.sources.mimic3 import extract_mimic3
-from twinfalsify.sources.mimic3 import hourly as hourly_mod
+import argparse  # noqa: E402
+import cProfile  # noqa: E402
+import pstats  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from twinfalsify.sources.mimic3 import extract_mimic3  # noqa: E402
+from twinfalsify.sources.mimic3 import hourly as hourly_mod  # noqa: E402
 
 H = np.timedelta64(3600, "s")
 LAB_ITEMS = {50971: 4.0, 50983: 140.0, 50902: 100.0, 50931: 120.0, 50893: 8.5, 50882: 24.0,
