@@ -93,7 +93,7 @@ def test_faulty_command_twin_every_node_accounted(small_study):
     seeds = [int(s) for s in plan.run_seeds()]
     modes = ["irreversible", "crash", "hang", "garbage", "init_failed", "ok", "clamp"]
     cmd = [sys.executable, "-m", "twinfalsify.twins.faulty", "--irreversible-hour", "2"]
-    for mode, seed in zip(modes, seeds):
+    for mode, seed in zip(modes, seeds, strict=True):
         if mode != "ok":
             cmd += ["--mode", f"{mode}:{seed}"]
     twin = make_twin("faulty", {"kind": "command", "command": cmd, "workers": 2,
@@ -119,7 +119,8 @@ def test_faulty_command_twin_every_node_accounted(small_study):
         want = expected(x0_5, study.actions.doses(np.asarray(seq)).tolist(), seeds[5])[-1]
         assert good.loc[node, list(FEATURES)].to_dict() == pytest.approx(want, rel=1e-12)
     shares = tp.clamp_shares(runs)
-    assert shares == {"runs": 7, "any": pytest.approx(1 / 7), "by_feature": {"HR": pytest.approx(1 / 7)}}
+    assert shares == {"runs": 7, "any": pytest.approx(1 / 7),
+                      "by_feature": {"HR": pytest.approx(1 / 7)}}
 
 
 def _recorded_setup():
