@@ -24,11 +24,13 @@ def _samples(rng: np.random.Generator, h: int) -> tuple[HypothesisSamples, np.nd
     y_up = y_lo + rng.uniform(0.5, 3, h)
     n = rng.integers(0, 60, h)
     n_follow = np.array([rng.integers(0, k + 1) for k in n])
-    follow = [rng.uniform(lo - 1, up + 1, k) for lo, up, k in zip(y_lo, y_up, n_follow, strict=True)]
+    follow = [rng.uniform(lo - 1, up + 1, k)
+              for lo, up, k in zip(y_lo, y_up, n_follow, strict=True)]
     nhat = rng.integers(0, 60, h)
     # twin means shifted either way so that many p-values are small
     shift = rng.normal(0, 1.5, h)
-    twin = [rng.uniform(lo, up, k) + s for lo, up, k, s in zip(y_lo, y_up, nhat, shift, strict=True)]
+    twin = [rng.uniform(lo, up, k) + s
+            for lo, up, k, s in zip(y_lo, y_up, nhat, shift, strict=True)]
     samples = HypothesisSamples(y_lo, y_up, n, Ragged.from_groups(follow), Ragged.from_groups(twin))
     return samples, rng.integers(0, 40, h)
 
