@@ -35,7 +35,8 @@ rule twin_shard:
         f"{R}/benchmarks/twins/{{twin}}/shard_{{shard}}.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
-    threads: 1
+    # twin processes of a protocol/command twin (workers) = cores the job uses
+    threads: lambda w: int(config["twins"][w.twin].get("workers", 1))
     resources:
         mem_mb=4000,
         runtime=120,
