@@ -139,8 +139,8 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     outcome = f["outcome"].iloc[0]
     ax.set_ylabel(f"clipped {unit_label(outcome)}")
     last = f.iloc[-1]
-    ax.set_title(title or describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"]),
-                 fontsize=10)  # fmt: skip
+    default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
+    ax.set_title(title or default, fontsize=10)
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     return fig
@@ -212,7 +212,7 @@ def sample_size_histograms(results: pd.DataFrame, kind: str = "causal") -> plt.F
                 label=r"$\hat n$ (twin)")  # fmt: skip
         ax.set_xscale("log")
         ax.set_title(o, fontsize=9)
-    for ax in axes.flat[len(outs):]:
+    for ax in axes.flat[len(outs) :]:
         ax.set_visible(False)
     for ax in axes[:, 0]:
         ax.set_ylabel("hypotheses")
@@ -233,8 +233,10 @@ def propensity_scatter(results: pd.DataFrame) -> plt.Figure:
     apply_style()
     methods = list(pd.unique(results["method"]))
     kinds = [k for k in ("causal", "manski") if k in set(results["kind"])]
-    fig, axes = plt.subplots(len(methods), len(kinds), figsize=(5.2 * len(kinds),
-                             3.8 * len(methods)), squeeze=False, sharex=True, sharey=True)  # fmt: skip
+    size = (5.2 * len(kinds), 3.8 * len(methods))
+    fig, axes = plt.subplots(
+        len(methods), len(kinds), figsize=size, squeeze=False, sharex=True, sharey=True
+    )
     for i, m in enumerate(methods):
         for j, k in enumerate(kinds):
             ax = axes[i, j]

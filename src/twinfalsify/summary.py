@@ -55,7 +55,9 @@ def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
     d = read_parquet(paths["d"], "D")
     plan = TwinPlan.from_json(read_json(paths["plan"]))
     states = StateBins.from_json(read_json(paths["bins"]))
-    nodes = load_nodes(read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids))
+    nodes = load_nodes(
+        read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids)
+    )
     obs = bounds.ObservationalSide(
         n=counts["n"].to_numpy(),
         follow=Ragged.from_grouped(
@@ -85,9 +87,15 @@ def rejected_any(results: pd.DataFrame, method: str | None = None) -> pd.DataFra
         raise ContractError(f"results: no rows for method {method!r}")
     return (
         sub.groupby("hyp_id")
-        .agg(p_min=("p_value", "min"), rejected=("rejected", "any"), t=("t", "first"),
-             kind=("kind", "first"), outcome=("outcome", "first"), n=("n", "first"),
-             nhat=("nhat", "first"))  # fmt: skip
+        .agg(
+            p_min=("p_value", "min"),
+            rejected=("rejected", "any"),
+            t=("t", "first"),
+            kind=("kind", "first"),
+            outcome=("outcome", "first"),
+            n=("n", "first"),
+            nhat=("nhat", "first"),
+        )  # fmt: skip
         .reset_index()
     )
 
@@ -137,7 +145,12 @@ def pick_hypothesis(
 
 
 def _d0_range(
-    d0x: np.ndarray, d0a: np.ndarray, states: StateBins, outcome: str, seq, bset,
+    d0x: np.ndarray,
+    d0a: np.ndarray,
+    states: StateBins,
+    outcome: str,
+    seq,
+    bset,
     quantiles: tuple[float, float],
 ) -> tuple[float, float, int]:
     """Design rule for (a_1:s, B_0:s): quantiles of X_s[k] over D0 trajectories that follow
@@ -184,7 +197,8 @@ def longitudinal_frame(
             lo, up, support = _d0_range(d0x, d0a, st.states, outcome, seq[:s], bset[: s + 1],
                                         quantiles)  # fmt: skip
         rows.append({"hyp_id": s, "outcome": outcome, "t": s, "actions": seq[:s],
-                     "bins": bset[: s + 1], "y_lo": lo, "y_up": up, "support": support})  # fmt: skip
+                     "bins": bset[: s + 1], "y_lo": lo, "y_up": up,
+                     "support": support})  # fmt: skip
     hyps = pd.DataFrame(rows)
     dx = to_array(st.d, FEATURES, T_MAX)
     da = action_codes(st.d, st.actions, T_MAX)
@@ -287,7 +301,9 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
         try:
             data = json.loads(text) if isinstance(text, str) else dict(text)
         except (TypeError, ValueError) as exc:
-            raise ContractError(f"twin runs: column 'clamped' is not JSON ({exc}): {text!r}") from None
+            raise ContractError(
+                f"twin runs: column 'clamped' is not JSON ({exc}): {text!r}"
+            ) from None
         for feat in data or {}:
             hits.setdefault(feat, set()).add(int(stay))
     rows = [{"feature": f, "x0_clamped": len(s), "share": len(s) / max(n_x0, 1)}
@@ -382,11 +398,15 @@ def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
              "table{border-collapse:collapse;margin-bottom:1.2em}"
              "td,th{border:1px solid #bbb;padding:.25em .6em;text-align:right}"
              "th{background:#eef}")  # fmt: skip
-    out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
-           f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"]
+    out = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
+        f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
+    ]
     for key, title in _TITLES.items():
         df = tables[key]
-        body = df.to_html(index=False, float_format=lambda v: f"{v:.3g}") if len(df) else "<p>none</p>"
+        body = (
+            df.to_html(index=False, float_format=lambda v: f"{v:.3g}") if len(df) else "<p>none</p>"
+        )
         out.append(f"<h2>{title}</h2>{body}")
     out.append("</body></html>")
     return "\n".join(out)

@@ -82,8 +82,10 @@ def action_space_grid(action_space: pd.DataFrame) -> pd.DataFrame:
     iv = action_space.drop_duplicates("iv_bin").set_index("iv_bin")["iv_range_ml_h"]
     va = action_space.drop_duplicates("vaso_bin").set_index("vaso_bin")["vaso_range_ug_kg_min"]
     cell = action_space.assign(
-        cell=[f"{100 * s:.1f}% ({int(n)})" for s, n in
-              zip(action_space["share"], action_space["n_hours"], strict=True)]  # fmt: skip
+        cell=[
+            f"{100 * s:.1f}% ({int(n)})"
+            for s, n in zip(action_space["share"], action_space["n_hours"], strict=True)
+        ]  # fmt: skip
     ).pivot(index="iv_bin", columns="vaso_bin", values="cell")
     cell = cell.sort_index().sort_index(axis=1)
     cell.columns = [f"vaso {b}: {va[b]} ug/kg/min" for b in cell.columns]
