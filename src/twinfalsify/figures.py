@@ -317,7 +317,7 @@ def confounding(frame: pd.DataFrame, outcome: str, show_action: int | None = Non
         ax.axvline(v.mean(), color=col, lw=2)
     ax.set_xlabel(f"{unit_label(outcome)} at hour 1")
     ax.set_ylabel("density")
-    ax.set_title(f"action {labels.get(show_action, show_action)}", fontsize=10)
+    ax.set_title(f"action {labels.get(show_action, show_action)} at hour 1", fontsize=10)
     ax.legend(fontsize=7)
     keep = counts[counts >= 20].index
     means = frame[frame["action"].isin(keep)].groupby(["action", "which"])["value"].mean().unstack()
