@@ -109,3 +109,14 @@ def test_report_includes_every_figure_with_captions(study):
             assert any(n.endswith(f"twins/{twin}/figures/{name}.png") for n in names), name
     assert any(n.endswith("summary.html") for n in names)
     assert any(n.endswith("figures/confounding.png") for n in names)
+
+
+@pytest.mark.skipif(not HAS_SWEEP, reason="sensitivity sweep (statistics module) not merged yet")
+def test_sensitivity_at_delta_zero_is_the_main_analysis(study):
+    _, _, cfg, r = study
+    for twin in cfg["twins"]:
+        res = pd.read_parquet(r / "twins" / twin / "results.parquet")
+        sweep = pd.read_csv(r / "twins" / twin / "tables" / "sensitivity.csv")
+        at0 = sweep[sweep["delta"] == 0].groupby(["method", "kind"])["n_rejected"].sum()
+        want = res.groupby(["method", "kind"])["rejected"].sum()
+        assert at0.sort_index().tolist() == want.sort_index().tolist()
