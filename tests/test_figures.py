@@ -246,3 +246,18 @@ def test_unit_labels():
     assert figures.unit_label("Glucose") == "Glucose (mg/dL)"
     assert figures.unit_label("sex") == "sex"
     assert json.loads(json.dumps(figures.STYLE)) == figures.STYLE
+
+
+def test_extend_to_horizon_keeps_the_prefix(st):
+    hid = summary.pick_hypothesis(st.results, rejected=True, prefer_long=False)
+    ext = summary.extend_to_horizon(st.results, st.hyps, hid)
+    h = st.hyps.set_index("hyp_id")
+    t = int(h.loc[hid, "t"])
+    assert int(h.loc[ext, "t"]) >= t and h.loc[ext, "outcome"] == h.loc[hid, "outcome"]
+    assert list(h.loc[ext, "actions"][:t]) == list(h.loc[hid, "actions"])
+    assert list(h.loc[ext, "bins"][: t + 1]) == list(h.loc[hid, "bins"])
+    longer = [i for i, r in h.iterrows() if r["outcome"] == h.loc[hid, "outcome"]
+              and r["kind"] == h.loc[hid, "kind"] and r["t"] > int(h.loc[ext, "t"])
+              and list(r["actions"][:t]) == list(h.loc[hid, "actions"])
+              and list(r["bins"][: t + 1]) == list(h.loc[hid, "bins"])]  # fmt: skip
+    assert not longer  # nothing longer on the same path

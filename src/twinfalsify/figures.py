@@ -135,7 +135,7 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     ax.set_xticks(t)
     ax.set_xticklabels([f"{int(s)}\nn={n}, $\\hat n$={nh}" for s, n, nh in
                         zip(f["t"], f["n"], f["nhat"], strict=True)], fontsize=8)  # fmt: skip
-    ax.set_xlabel("hour t (followers n, twin runs $\\hat n$)")
+    ax.set_xlabel("hour t (trajectories entering n, twin runs entering $\\hat n$)")
     outcome = f["outcome"].iloc[0]
     ax.set_ylabel(f"clipped {unit_label(outcome)}")
     last = f.iloc[-1]

@@ -141,6 +141,32 @@ def pick_hypothesis(
     return int(want.sort_values(keys + ["hyp_id"], ascending=asc + [True]).iloc[0]["hyp_id"])
 
 
+def extend_to_horizon(results: pd.DataFrame, hyps: pd.DataFrame, hyp_id: int) -> int:
+    """The hypothesis of the longest horizon whose (a, B) prefix is hyp_id's, same outcome and
+    kind (smallest p-value among those), so a longitudinal figure of a rejection at t < T still
+    spans t = 1..T and passes through the rejected step; hyp_id itself if none is longer."""
+    row = hyps.loc[hyps["hyp_id"] == hyp_id]
+    if row.empty:
+        raise ContractError(f"figures: hyp_id {hyp_id} is not in the hypotheses table")
+    row = row.iloc[0]
+    t = int(row["t"])
+    a, b = [int(v) for v in row["actions"]], [int(v) for v in row["bins"]]
+    cand = hyps[(hyps["outcome"] == row["outcome"]) & (hyps["kind"] == row["kind"])
+                & (hyps["t"] > t)]  # fmt: skip
+    ok = [
+        int(h) for h, aa, bb in zip(cand["hyp_id"], cand["actions"], cand["bins"], strict=True)
+        if [int(v) for v in aa[:t]] == a and [int(v) for v in bb[: t + 1]] == b
+    ]  # fmt: skip
+    if not ok:
+        return int(hyp_id)
+    per = rejected_any(results[results["hyp_id"].isin(ok)])
+    per = per[(per["n"] > 0) & (per["nhat"] > 0)]
+    if per.empty:
+        return int(hyp_id)
+    return int(per.sort_values(["t", "p_min", "hyp_id"], ascending=[False, True, True])
+               .iloc[0]["hyp_id"])  # fmt: skip
+
+
 # -- longitudinal bounds (the paper's HCO3 figure) ----------------------------------------------
 
 
