@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from functools import partial
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from twinfalsify.inference.hoeffding import hoeffding_test
+from twinfalsify.inference import registry
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples
-from twinfalsify.schema import ContractError
 
 Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
 
@@ -24,29 +22,8 @@ RESULT_COLUMNS = (
 
 
 def make_methods(spec: Mapping[str, Mapping[str, Any]], seed: int) -> dict[str, Method]:
-    """Config ``testing.methods: {name: {options}}`` -> callables.
-
-    Known: hoeffding (factor: 2 = paper's proposition, 4 = authors' code); the
-    statistics module adds bootstrap and the tighter exact methods.
-    """
-    methods: dict[str, Method] = {}
-    for name, opts in spec.items():
-        opts = dict(opts or {})
-        if name == "hoeffding":
-            methods[name] = partial(hoeffding_test, factor=float(opts.get("factor", 2.0)))
-        else:
-            methods[name] = _optional_method(name, opts, seed)
-    return methods
-
-
-def _optional_method(name: str, opts: dict[str, Any], seed: int) -> Method:
-    try:
-        from twinfalsify.inference import registry  # provided by the statistics module
-    except ImportError:
-        registry = None
-    if registry is None or name not in getattr(registry, "METHODS", {}):
-        raise ContractError(f"testing.methods: unknown method {name!r}")
-    return registry.make(name, opts, seed)
+    """Config ``testing.methods: {name: {options}}`` -> callables (see inference.registry)."""
+    return {name: registry.make(name, opts, seed) for name, opts in spec.items()}
 
 
 def run_tests(
