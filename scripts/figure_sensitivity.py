@@ -21,7 +21,7 @@ def main(sm):
     st = load_study_twin(dict(sm.input.items()))
     testing = json.loads(sm.params.testing)
     opts = json.loads(sm.params.figures).get("sensitivity") or {}
-    deltas = [float(d) for d in opts.get("deltas", [0.0, 0.05, 0.1, 0.2, 0.3, 0.5])]
+    deltas = [float(d) for d in opts.get("deltas", [0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2])]
     methods = make_methods(testing["methods"], int(sm.params.seed))
     parts = []
     for kind, idx in st.hyps.groupby("kind").indices.items():  # two families, as in tests

@@ -335,3 +335,37 @@ def confounding(frame: pd.DataFrame, outcome: str, show_action: int | None = Non
     bx.legend(fontsize=7)
     fig.tight_layout()
     return fig
+
+
+def pvalue_boxen_methods(
+    results: pd.DataFrame, kind: str = "causal", title: str | None = None
+) -> plt.Figure:
+    """pvalue_boxen for every method in the results, one row of (H_lo, H_up) panels each."""
+    methods = list(pd.unique(results["method"]))
+    if not methods:
+        raise ValueError("pvalue_boxen_methods: results have no rows")
+    apply_style()
+    order = [o for o in OUTCOMES if o in set(results["outcome"])]
+    fig, axes = plt.subplots(len(methods), 2, figsize=(11, 4.2 * len(methods)), squeeze=False,
+                             sharey="row")  # fmt: skip
+    for i, method in enumerate(methods):
+        sub = results[(results["method"] == method) & (results["kind"] == kind)].copy()
+        sub["neg_log10_p"] = -np.log10(np.clip(sub["p_value"].to_numpy(float), 1e-300, 1.0))
+        for ax, side in zip(axes[i], ("lo", "up"), strict=True):
+            part = sub[sub["side"] == side]
+            if len(part):
+                sns.boxenplot(data=part, x="outcome", y="neg_log10_p", order=order, ax=ax,
+                              color=COLORS["bound"], k_depth="trustworthy")  # fmt: skip
+                rej = part[part["rejected"]]
+                if len(rej):
+                    ax.axhline(-np.log10(rej["p_value"].max()), ls="--", color=COLORS["rejected"],
+                               lw=1, label=f"rejected after {part['correction'].iloc[0]}"
+                               f" ({len(rej)})")  # fmt: skip
+                    ax.legend(loc="upper right", fontsize=8)
+            ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
+            ax.set_ylabel(f"$-\\log_{{10}}\\ p_{{{side}}}$ (dimensionless)")
+            ax.set_title(f"{method}: $H_{{{side}}}$", fontsize=10)
+            ax.tick_params(axis="x", rotation=60)
+    fig.suptitle(title or f"p-values, {kind} hypotheses")
+    fig.tight_layout()
+    return fig

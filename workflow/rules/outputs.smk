@@ -37,10 +37,8 @@ rule figure_pvalues:
     resources:
         mem_mb=2000,
         runtime=5,
-    params:
-        method=lambda w: next(iter(config["testing"]["methods"])),
     script:
-        "../../scripts/figure_pvalues.py"
+        "../../scripts/figure_pvalues_methods.py"
 
 
 report: "../report/workflow.rst"
