@@ -238,6 +238,8 @@ def test_confounding_frame_observed_are_the_takers(st):
     again = summary.confounding_frame(st.d, world, st.actions, "MeanBP", seed=3)
     pd.testing.assert_frame_equal(frame, again)  # seeded: reproducible
     _png_ok(figures.confounding(frame, "MeanBP"), TMP + "/_tf_conf.png")
+    with pytest.raises(ValueError, match="never taken"):
+        figures.confounding(frame, "MeanBP", show_action=999)
     with pytest.raises(ValueError, match="unknown feature"):
         summary.confounding_frame(st.d, world, st.actions, "nope")
 

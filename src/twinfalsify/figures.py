@@ -310,6 +310,11 @@ def confounding(frame: pd.DataFrame, outcome: str, show_action: int | None = Non
     if show_action is None:  # the most common non-zero action shows the bias best
         nz = counts.drop(index=0, errors="ignore")
         show_action = int((nz if len(nz) else counts).idxmax())
+    elif show_action not in counts.index:
+        raise ValueError(
+            f"figures.confounding.action: action {show_action} was never taken at hour 1 "
+            f"(taken: {sorted(int(a) for a in counts.index)})"
+        )
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [1, 1.4]})
     sel = frame[frame["action"] == show_action]
     edges = np.histogram_bin_edges(sel["value"], bins=30)
