@@ -1,14 +1,15 @@
 # Calibration harness: `snakemake --cores 2 calibration` (not part of `all`).
 # Its own config file is an input of every rule, so editing it reruns the harness.
+from pathlib import Path
+
 import yaml
 
 CAL = "results/calibration"
 CAL_CONFIG = "config/calibration.yaml"
-
-
-def calibration_chunks():
-    with open(CAL_CONFIG) as fh:
-        return int((yaml.safe_load(fh) or {}).get("chunks", 4))
+# The number of chunk jobs is part of the DAG, so it is read when the workflow is parsed
+# (a workdir without the file, e.g. a study run elsewhere, must still parse).
+CAL_CFG_TEXT = Path(CAL_CONFIG).read_text() if Path(CAL_CONFIG).exists() else "{}"
+CAL_CHUNKS = list(range(int((yaml.safe_load(CAL_CFG_TEXT) or {}).get("chunks", 4))))
 
 
 rule calibration:
@@ -45,19 +46,13 @@ rule calibration_chunk:
 rule calibration_report:
     input:
         config=CAL_CONFIG,
-        tests=expand(
-            f"{CAL}/chunks/{{chunk}}/tests.parquet", chunk=range(calibration_chunks())
-        ),
+        tests=expand(f"{CAL}/chunks/{{chunk}}/tests.parquet", chunk=CAL_CHUNKS),
         coverage=expand(
             f"{CAL}/chunks/{{chunk}}/coverage.parquet",
-            chunk=range(calibration_chunks()),
+            chunk=CAL_CHUNKS,
         ),
-        widths=expand(
-            f"{CAL}/chunks/{{chunk}}/widths.parquet", chunk=range(calibration_chunks())
-        ),
-        timing=expand(
-            f"{CAL}/chunks/{{chunk}}/timing.parquet", chunk=range(calibration_chunks())
-        ),
+        widths=expand(f"{CAL}/chunks/{{chunk}}/widths.parquet", chunk=CAL_CHUNKS),
+        timing=expand(f"{CAL}/chunks/{{chunk}}/timing.parquet", chunk=CAL_CHUNKS),
     output:
         table=report(
             f"{CAL}/calibration.csv",
