@@ -328,6 +328,14 @@ def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarra
     return out
 
 
+def run_to_stop(st: SequentialState, runs: TwinRuns) -> None:
+    """Reveal batch after batch (batch 0 = no twin run) until every hypothesis stopped."""
+    for b in range(0, st.n_batches + 1):
+        st.update(runs, b)
+        if not st.active.any():
+            break
+
+
 def adaptive_test(
     hyps: pd.DataFrame,
     obs: ObservationalSide,
@@ -352,10 +360,7 @@ def adaptive_test(
         raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
     runs = twin_runs_indexed(hyps, nodes, states)
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c)
-    for b in range(0, st.n_batches + 1):
-        st.update(runs, b)
-        if not st.active.any():
-            break
+    run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
     used = node_runs(hypothesis_paths(hyps, nodes.index), per_hyp, len(nodes.index))
