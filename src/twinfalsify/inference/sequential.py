@@ -167,7 +167,9 @@ class SequentialState:
     """Decisions of a sequential test; updated batch by batch (see module doc).
 
     ``budget``: runs per sequence at most (the plan's m by default); ``n_family``: 2 H_f per
-    hypothesis (defaults to :func:`family_sizes`; a shard passes the whole study's).
+    hypothesis (defaults to :func:`family_sizes`). ``only``: a shard runs its own hypotheses
+    but builds the state on the whole study, so the observational order and bets (seeded
+    over all hypotheses) and hence every decision equal the unsharded ones.
     """
 
     hyps: pd.DataFrame
@@ -179,6 +181,7 @@ class SequentialState:
     seed: int = 0
     c: float = C_TRUNC
     n_family: np.ndarray | None = None
+    only: np.ndarray | None = None  # (H,) bool: hypotheses to run (others never receive runs)
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -213,6 +216,8 @@ class SequentialState:
         no_obs = self.obs.n == 0  # p = 1 by rule: nothing to learn from the twin
         self.side[no_obs] = FUTILE
         self.stop_batch[no_obs] = 0
+        if self.only is not None:
+            self.stop_batch[~np.asarray(self.only, bool)] = 0
         self.n_batches = -(-self.budget // self.batch_size)
 
     @property
@@ -326,6 +331,17 @@ def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarra
     on = paths >= 0
     np.maximum.at(out, paths[on], np.broadcast_to(per_hyp[:, None], paths.shape)[on])
     return out
+
+
+def embed_runs(runs: TwinRuns, idx: np.ndarray, h: int) -> TwinRuns:
+    """TwinRuns of the hypotheses ``idx`` (sorted) placed in a study of h (others empty)."""
+    sizes = np.zeros(h, dtype=np.int64)
+    sizes[idx] = runs.values.sizes
+    m = runs.in_b0.shape[1]
+    in_b0, failed = np.zeros((h, m), bool), np.zeros((h, m), bool)
+    in_b0[idx], failed[idx] = runs.in_b0, runs.failed
+    offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return TwinRuns(Ragged(runs.values.values, offs), runs.run, in_b0, failed)
 
 
 def run_to_stop(st: SequentialState, runs: TwinRuns) -> None:
