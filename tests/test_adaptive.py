@@ -46,6 +46,7 @@ def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
     assert np.all(d[inner] > 0)
 
 
+@pytest.mark.slow
 def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin):
     study, twin, runs = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)

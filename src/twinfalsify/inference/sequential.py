@@ -207,10 +207,16 @@ class SequentialState:
         self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c)
         lev_star, lev = np.log(2.0 / self.a_star), np.full(h, np.log(2.0 / self.alpha))
         # L = sup{m: max K+_lo(m) >= 2/a}; U = inf{m: max K-_up(m) >= 2/a}
-        self.l_star = _bound(self.lo, lev_star, +1, True, self.c)
-        self.u_star = _bound(self.up, lev_star, -1, True, self.c)
-        self.l_fut = _bound(self.lo, lev, +1, True, self.c)
-        self.u_fut = _bound(self.up, lev, -1, True, self.c)
+        # bounds are per hypothesis: compute them only where they are used (a shard's own);
+        # elsewhere L = 0, U = 1 (never rejectable; those hypotheses never receive runs)
+        g = np.arange(h) if self.only is None else np.flatnonzero(self.only)
+        lo, up = self.lo.take(g), self.up.take(g)
+        self.l_star, self.l_fut = np.zeros(h), np.zeros(h)
+        self.u_star, self.u_fut = np.ones(h), np.ones(h)
+        self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
+        self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
+        self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
+        self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
         self.side = np.zeros((h, 2), dtype=np.int8)
         self.stop_batch = np.full(h, -1, dtype=np.int64)
         no_obs = self.obs.n == 0  # p = 1 by rule: nothing to learn from the twin
