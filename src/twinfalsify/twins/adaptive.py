@@ -176,3 +176,69 @@ def run_adaptive_shard(
             f"adaptive shard {shard}: {len(rows)} node rows but {per_node.sum()} node-runs "
             "revealed: accounting broken")
     return rows, dec.loc[:, list(DECISION_COLUMNS)], summary
+
+
+def load_simulated(rows: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNodes:
+    """Simulated node rows -> TwinNodes (NaN for runs never simulated or failed)."""
+    names = plan.nodes
+    m = len(plan.x0_stay_ids)
+    values = np.full((len(names), m, len(FEATURES)), np.nan)
+    node_idx = rows["node"].map({n: i for i, n in enumerate(names)})
+    run_idx = rows["init_stay_id"].map({s: j for j, s in enumerate(plan.x0_stay_ids)})
+    if node_idx.isna().any() or run_idx.isna().any():
+        raise ContractError("adaptive twin runs hold node(s) or X_0 not in the plan")
+    if rows.duplicated(["node", "init_stay_id"]).any():
+        raise ContractError("adaptive twin runs: duplicated (node, X_0) rows across shards")
+    ok = (rows["status"] == "ok").to_numpy()
+    values[node_idx.to_numpy(int)[ok], run_idx.to_numpy(int)[ok], :] = rows.loc[
+        ok, list(FEATURES)].to_numpy(float)
+    return TwinNodes(index={parse_node(n): i for i, n in enumerate(names)}, values=values,
+                     x0=x0[list(FEATURES)].to_numpy(float))
+
+
+def adaptive_results(
+    hyps: pd.DataFrame, obs: ObservationalSide, nodes: TwinNodes, states: StateBins,
+    decisions: pd.DataFrame, *, alpha: float = 0.05, correction: str = "holm",
+) -> pd.DataFrame:
+    """The tests stage's long results table from adaptive decisions (method betting_sequential).
+
+    Descriptive columns (nhat, q_twin_hat, ...) use the twin runs revealed at the stop;
+    p-values are the shards' anytime-valid ones; the correction runs per kind on them.
+    """
+    from twinfalsify.falsify import RESULT_COLUMNS
+    from twinfalsify.inference.samples import HypothesisSamples, Ragged
+    from twinfalsify.inference.sequential import correct_by_family
+
+    dec = decisions.set_index("hyp_id")
+    missing = set(hyps["hyp_id"]) - set(dec.index)
+    if missing:
+        raise ContractError(f"adaptive decisions: {len(missing)} hypothesis(es) missing, e.g. "
+                            f"{sorted(missing)[:3]}")
+    dec = dec.loc[hyps["hyp_id"]]
+    runs = twin_runs_indexed(hyps, nodes, states)
+    used = dec["runs_used"].to_numpy(np.int64)
+    keep = runs.run < used[runs.values.group_ids()]
+    twin = Ragged(runs.values.values[keep], np.concatenate(
+        [[0], np.cumsum(np.bincount(runs.values.group_ids()[keep], minlength=len(hyps)))]
+    ).astype(np.int64))
+    if not np.array_equal(twin.sizes, dec["nhat"].to_numpy()):
+        raise ContractError("adaptive decisions: nhat disagrees with the simulated runs")
+    s = HypothesisSamples(hyps["y_lo"].to_numpy(float), hyps["y_up"].to_numpy(float), obs.n,
+                          obs.follow, twin)
+    p_lo, p_up = dec["p_lo"].to_numpy(float), dec["p_up"].to_numpy(float)
+    rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
+    parts = []
+    for side, p, rej in (("lo", p_lo, rej_lo), ("up", p_up, rej_up)):
+        parts.append(pd.DataFrame({
+            "hyp_id": hyps["hyp_id"].to_numpy(), "kind": hyps["kind"].to_numpy(),
+            "outcome": hyps["outcome"].to_numpy(), "t": hyps["t"].to_numpy(), "side": side,
+            "method": "betting_sequential", "n": s.n, "n_follow": s.n_follow, "nhat": s.nhat,
+            "n_failed": dec["n_failed"].to_numpy(), "y_lo": s.y_lo, "y_up": s.y_up,
+            "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
+            "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
+            "rejected": rej, "correction": correction, "alpha": alpha,
+            "stop_batch": dec["stop_batch"].to_numpy(), "runs_used": used,
+            "decision": dec[f"decision_{side}"].to_numpy(),
+        }))  # fmt: skip
+    out = pd.concat(parts, ignore_index=True)
+    return out.loc[:, [*RESULT_COLUMNS, "stop_batch", "runs_used", "decision"]]
