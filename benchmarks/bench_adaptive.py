@@ -22,12 +22,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import yaml
 
 from twinfalsify import bounds, design
 from twinfalsify.falsify import make_methods, run_tests
-from twinfalsify.inference.sequential import adaptive_test
+from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, node_runs
 from twinfalsify.schema import FEATURES, STAY_ID, to_array
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
@@ -102,6 +103,13 @@ def main(argv: list[str] | None = None) -> None:
                 "decided_rejected": int((out.decision == 1).sum()),
                 "decided_futile": int((out.decision == 2).sum()),
                 "undecided_at_budget": int((out.decision == 0).sum()),
+                # hours that would remain if parameter sets still undecided at the budget
+                # had cost nothing: how much of the bill the undecided ones drive
+                "hours_without_undecided": int(node_runs(
+                    hypothesis_paths(hyps, nodes.index),
+                    np.where((out.decision == 0).any(axis=1), 0, out.runs_per_hypothesis),
+                    len(nodes.index)).sum()),
+                "mean_stop_fraction": round(float(out.runs_per_hypothesis.mean()) / m, 4),
                 "seconds": round(time.monotonic() - t1, 1),
             }
             rows.append(row)

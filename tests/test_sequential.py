@@ -17,6 +17,7 @@ from twinfalsify.inference.sequential import (
     SequentialState,
     TwinRuns,
     cs_bets,
+    future_bet_bound,
     node_runs,
     run_to_stop,
 )
@@ -41,6 +42,21 @@ def test_cs_bets_are_predictable_and_ignore_the_sample_size():
     other = cs_bets(y, np.array([0, 300]), np.array([0.01]))
     np.testing.assert_array_equal(other[:51], full[:51])
     assert not np.array_equal(other[51:], full[51:])
+
+
+def test_future_bet_bound_dominates_every_continuation():
+    """Brute force: random, all-0, all-1 and alternating futures never bet above the bound."""
+    rng = np.random.default_rng(6)
+    for tau in (0, 1, 30, 200):
+        x = rng.beta(2, 5, tau)
+        side = OrderedSide(x, cs_bets(x, np.array([0, tau]), np.array([1e-4])), np.array([0, tau]))
+        bound = future_bet_bound(side, np.array([tau]), np.array([1e-4]))[0]
+        futures = [rng.random(300), np.zeros(300), np.ones(300), np.tile([0.0, 1.0], 150),
+                   np.full(300, x.mean() if tau else 0.5)]
+        for fut in futures:
+            y = np.concatenate([x, fut])
+            lam = cs_bets(y, np.array([0, len(y)]), np.array([1e-4]))[tau:]
+            assert lam.max() <= bound + 1e-12, (tau, lam.max(), bound)
 
 
 @pytest.mark.parametrize("dist", ["bernoulli", "beta"])

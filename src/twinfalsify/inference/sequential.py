@@ -33,12 +33,14 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
     evaluation, no search).
 (b) futility: no continuation of the twin data up to the budget can make the rule reject at
     alpha (the most lenient Holm threshold). Every future factor of K-_twin(L) is at most
-    1 + c L (x = 0, i.e. the outcome at y_lo, with the largest bet c), and only runs whose
+    1 + lambda_bar L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every future bet,
+    ``future_bet_bound``: the bets shrink with the accumulated variance), and only runs whose
     real X_0 lies in B_0 can ever enter, so the best reachable capital is
-    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + c L)^r), r = remaining runs with X_0 in B_0.
+    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + lambda_bar L)^r), r = remaining runs with X_0
+    in B_0.
     This bounds the issue's "every remaining run at y_lo" path (and every other path), so
     stopping never loses a rejection the full budget could have made. Mirror for H_up with
-    factor 1 + c (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
+    factor 1 + lambda_bar (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
 
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
@@ -255,7 +257,7 @@ class SequentialState:
             return
         j = self.revealed(b)
         upto = np.full(len(self.hyps), j)
-        tw, _ = self._twin_prefix(runs, upto, act)
+        tw, nhat = self._twin_prefix(runs, upto, act)
         und = self.side[act] == UNDECIDED
         # (a) early rejection at a*: twin capital at the observational bound at a*
         lev_star = np.log(2.0 / self.a_star[act])
@@ -265,12 +267,13 @@ class SequentialState:
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
         lev = np.log(2.0 / self.alpha)
         lf, uf = self.l_fut[act], self.u_fut[act]
+        lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
         best_lo = np.maximum(
             log_capital(tw, lf, -1, True, self.c),
-            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(self.c * lf))
+            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(lam * lf))
         best_up = np.maximum(
             log_capital(tw, uf, +1, True, self.c),
-            log_capital(tw, uf, +1, False, self.c) + r * np.log1p(self.c * (1 - uf)))
+            log_capital(tw, uf, +1, False, self.c) + r * np.log1p(lam * (1 - uf)))
         new = np.stack([np.where(rej_lo, REJECTED, np.where(best_lo < lev, FUTILE, UNDECIDED)),
                         np.where(rej_up, REJECTED, np.where(best_up < lev, FUTILE, UNDECIDED))],
                        axis=1).astype(np.int8)
@@ -308,6 +311,23 @@ class SequentialState:
         p_lo = np.where(self.side[:, 0] == REJECTED, np.minimum(p_lo, self.a_star), p_lo)
         p_up = np.where(self.side[:, 1] == REJECTED, np.minimum(p_up, self.a_star), p_up)
         return p_lo, p_up, nhat
+
+
+def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
+                     c: float = C_TRUNC) -> np.ndarray:
+    """Upper bound on every future CS bet of each group, whatever the future values.
+
+    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) and
+    sigma2_{i-1} i = 1/4 + sum_{j<i} (x_j - mu_j)^2 >= 1/4 + S_tau for i > tau (the sum only
+    grows), log(1 + i) >= log(2 + tau): so lambda_i <= min(c, sqrt(2 log(1/delta0) /
+    ((1/4 + S_tau) log(2 + tau)))) for every i > tau (tau = nhat so far).
+    """
+    gid, t = _layout(side.offsets)
+    mu = (0.5 + _segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
+    sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
+    s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
+    k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
+    return np.minimum(c, np.sqrt(k))
 
 
 def _group_means(side: OrderedSide) -> np.ndarray:
