@@ -16,6 +16,7 @@ include: "workflow/rules/source.smk"
 include: "workflow/rules/design.smk"
 include: "workflow/rules/twins.smk"
 include: "workflow/rules/tests.smk"
+include: "workflow/rules/adaptive.smk"
 include: "workflow/rules/outputs.smk"
 include: "workflow/rules/calibration.smk"
 

@@ -1,0 +1,182 @@
+"""Twin-hours and rejections: fixed scheme vs adaptive (sequential) scheme on a study config.
+
+    PYTHONPATH=src python benchmarks/bench_adaptive.py [--config config/config.yaml]
+        [--batch-sizes 50 100 250 500] [--twins oracle biased fitted]
+    PYTHONPATH=src python benchmarks/bench_adaptive.py --config config/test.yaml \
+        --calibrate 20 --bias-levels 0 5 10 25 --batch-sizes 25
+
+The second form is a small calibration: R replicate worlds (seeds seed + r), the oracle
+(bias 0) and twins biased by HR + level; it prints the family-wise error (fraction of
+replicates with any rejection of the oracle), the power (rejections per replicate and the
+fraction of the fixed scheme's rejections kept) and the twin-hours ratio.
+
+Builds the study in-process exactly as the workflow does (source -> split -> design ->
+observational side -> twin plan -> every twin run of the plan, builtin twins), then
+reveals the twin runs batch by batch (``inference.sequential.adaptive_test``). Twin-hours
+are counted with prefix reuse for both schemes (node a_1:s = one simulated hour per run);
+the fixed scheme simulates every node for the whole budget. Rejections: the fixed scheme
+with the config's methods (and betting) after Holm, the adaptive scheme after Holm on the
+anytime-valid p-values at the stopping times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from twinfalsify import bounds, design
+from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, node_runs
+from twinfalsify.schema import FEATURES, STAY_ID, to_array
+from twinfalsify.sources.synthetic import generate
+from twinfalsify.split import split_stays
+from twinfalsify.twins import plan as tp
+from twinfalsify.twins.registry import make_twin
+
+
+@dataclass
+class Study:
+    hyps: pd.DataFrame
+    obs: bounds.ObservationalSide
+    states: design.StateBins
+    actions: design.ActionBins
+    plan: tp.TwinPlan
+    x0: pd.DataFrame
+    ctx: dict
+
+
+def build(cfg: dict, seed: int) -> Study:
+    """The workflow's stages in-process for a synthetic study config."""
+    if cfg["source"]["kind"] != "synthetic":
+        sys.exit("bench_adaptive: only the synthetic source is supported in-process")
+    traj = generate(cfg["source"].get("synthetic"), seed=seed)
+    d0, d = split_stays(traj, float(cfg["split"]["d0_fraction"]), seed)
+    actions = design.fit_action_bins(d0)
+    states = design.fit_state_bins(d0)
+    dc = cfg["design"]
+    hyps, _ = design.build_hypotheses(
+        d0, actions, states, quantiles=tuple(dc.get("quantiles", (0.2, 0.8))),
+        min_support=int(dc.get("min_support", 10)),
+        kinds=tuple(dc.get("kinds", ("causal", "manski"))),
+    )
+    obs = bounds.observational_side(
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+    )
+    runs_cfg = cfg["twin_runs"]
+    plan = tp.plan_twin_runs(hyps, d[STAY_ID].unique(), runs_cfg.get("runs_per_sequence", 5000),
+                             int(runs_cfg.get("n_shards", 4)), seed)
+    tmp = Path(tempfile.mkdtemp())
+    d0.to_parquet(tmp / "d0.parquet")
+    return Study(hyps, obs, states, actions, plan, tp.x0_frame(d, plan.x0_stay_ids),
+                 {"source": cfg["source"], "d0": str(tmp / "d0.parquet")})
+
+
+def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: dict,
+            alpha: float, seed: int) -> list[dict]:
+    """Fixed vs adaptive for one twin: one row per batch size."""
+    twin = make_twin(name, spec, st.ctx)
+    runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
+                      for k in range(len(st.plan.shards))], ignore_index=True)
+    nodes = tp.load_nodes(runs, st.plan, st.x0)
+    hyps, m = st.hyps, len(st.plan.x0_stay_ids)
+    tv, nf = bounds.twin_side(hyps, nodes, st.states)
+    res = run_tests(hyps, bounds.hypothesis_samples(hyps, st.obs, tv), nf,
+                    make_methods(methods, seed), alpha=alpha)
+    fixed = res.groupby("method")["rejected"].sum().to_dict()
+    fixed_sets = {
+        k: set(zip(g.loc[g.rejected, "hyp_id"], g.loc[g.rejected, "side"], strict=True))
+        for k, g in res.groupby("method")
+    }
+    rows = []
+    for bs in batch_sizes:
+        t1 = time.monotonic()
+        out = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
+                            seed=seed)
+        ids = hyps["hyp_id"].to_numpy()
+        ad = {(i, "lo") for i in ids[out.rejected_lo]}
+        ad |= {(i, "up") for i in ids[out.rejected_up]}
+        rows.append({
+            "twin": name, "batch_size": bs,
+            "hours_fixed": out.twin_hours_fixed, "hours_adaptive": out.twin_hours_adaptive,
+            "hours_ratio": round(out.twin_hours_adaptive / max(out.twin_hours_fixed, 1), 4),
+            "rejected_adaptive": len(ad),
+            **{f"rejected_fixed_{k}": int(v) for k, v in fixed.items()},
+            **{f"kept_of_{k}": len(ad & s) for k, s in fixed_sets.items()},
+            "decided_rejected": int((out.decision == 1).sum()),
+            "decided_futile": int((out.decision == 2).sum()),
+            "undecided_at_budget": int((out.decision == 0).sum()),
+            # hours left if parameter sets still undecided at the budget had cost nothing:
+            # how much of the bill the undecided ones drive
+            "hours_without_undecided": int(node_runs(
+                hypothesis_paths(hyps, nodes.index),
+                np.where((out.decision == 0).any(axis=1), 0, out.runs_per_hypothesis),
+                len(nodes.index)).sum()),
+            "mean_stop_fraction": round(float(out.runs_per_hypothesis.mean()) / m, 4),
+            "seconds": round(time.monotonic() - t1, 1),
+        })  # fmt: skip
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="config/config.yaml")
+    ap.add_argument("--batch-sizes", type=int, nargs="+", default=[50, 100, 250, 500])
+    ap.add_argument("--twins", nargs="+", default=None)
+    ap.add_argument("--calibrate", type=int, default=0, metavar="R")
+    ap.add_argument("--bias-levels", type=float, nargs="+", default=[0.0, 5.0, 10.0, 25.0])
+    args = ap.parse_args(argv)
+    cfg = yaml.safe_load(Path(args.config).read_text())
+    seed = int(cfg["seed"])
+    alpha = float(cfg["testing"].get("alpha", 0.05))
+    methods = {**cfg["testing"]["methods"], "betting": {}}
+    rows = []
+    if args.calibrate:
+        for r in range(args.calibrate):
+            st = build(cfg, seed + r)
+            for level in args.bias_levels:
+                spec = ({"kind": "oracle"} if level == 0
+                        else {"kind": "biased", "shift": {"HR": level}})
+                for row in compare(st, f"HR+{level:g}", spec, args.batch_sizes, methods,
+                                   alpha, seed + r):
+                    rows.append({"replicate": r, "bias": level, **row})
+            print(json.dumps(rows[-1]), flush=True)
+        t = pd.DataFrame(rows)
+        t["any_rejection"] = t["rejected_adaptive"] > 0
+        fixed_cols = [c for c in t if c.startswith("rejected_fixed_")]
+        agg = t.groupby(["bias", "batch_size"]).agg(
+            replicates=("replicate", "nunique"),
+            fwer_or_any_rejection=("any_rejection", "mean"),
+            rejections_adaptive=("rejected_adaptive", "mean"),
+            **{c.replace("rejected_", "rejections_"): (c, "mean") for c in fixed_cols},
+            hours_ratio=("hours_ratio", "mean"),
+        )
+        agg["any_rejection_fixed_betting"] = t.assign(
+            a=t["rejected_fixed_betting"] > 0).groupby(["bias", "batch_size"])["a"].mean()
+        print(agg.to_markdown())
+        return
+    t0 = time.monotonic()
+    st = build(cfg, seed)
+    print(f"study {cfg['study']}: {len(st.hyps)} parameter sets "
+          f"({st.hyps.groupby('kind').size().to_dict()}), {len(st.plan.nodes)} nodes, "
+          f"m = {len(st.plan.x0_stay_ids)}; twin-hours {st.plan.hours()} "
+          f"(built in {time.monotonic() - t0:.0f} s)", flush=True)
+    for name in args.twins or list(cfg["twins"]):
+        for row in compare(st, name, cfg["twins"][name], args.batch_sizes, methods, alpha,
+                           seed):
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    print(pd.DataFrame(rows).to_markdown(index=False))
+
+
+if __name__ == "__main__":
+    main()

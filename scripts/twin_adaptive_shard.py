@@ -1,0 +1,63 @@
+"""Rule twin_shard_adaptive: simulate one shard batch by batch, stopping decided hypotheses."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify import bounds  # noqa: E402
+from twinfalsify.design import ActionBins, StateBins  # noqa: E402
+from twinfalsify.inference.samples import Ragged  # noqa: E402
+from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
+from twinfalsify.twins.adaptive import run_adaptive_shard  # noqa: E402
+from twinfalsify.twins.plan import TwinPlan, x0_frame  # noqa: E402
+from twinfalsify.twins.registry import make_twin  # noqa: E402
+
+
+class _Log:
+    """Progress lines into the rule's log."""
+
+    def write(self, text):
+        if text.strip():
+            log.info("%s", text.rstrip())
+
+    def flush(self):
+        pass
+
+
+def main(sm):
+    plan = TwinPlan.from_json(read_json(sm.input.plan))
+    hyps = read_parquet(sm.input.hypotheses, "hypotheses")
+    counts = read_parquet(sm.input.counts, "observational counts")
+    follow = read_parquet(sm.input.follow, "follower outcomes")
+    obs = bounds.ObservationalSide(
+        n=counts["n"].to_numpy(),
+        follow=Ragged.from_grouped(
+            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
+        ),
+    )
+    runs_cfg, testing = json.loads(sm.params.runs), json.loads(sm.params.testing)
+    twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
+    x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
+    rows, decisions, summary = run_adaptive_shard(
+        twin,
+        plan,
+        int(sm.wildcards.shard),
+        x0,
+        ActionBins.from_json(read_json(sm.input.actions)),
+        hyps,
+        obs,
+        StateBins.from_json(read_json(sm.input.bins)),
+        batch_size=int(runs_cfg.get("batch_size", 100)),
+        alpha=float(testing.get("alpha", 0.05)),
+        seed=int(sm.params.seed),
+        log=_Log(),
+    )
+    log.info("shard %s: %s", sm.wildcards.shard, summary)
+    write_parquet(rows, sm.output.runs)
+    write_parquet(decisions, sm.output.decisions)
+    write_json(summary, sm.output.summary)
+
+
+run_rule(snakemake, main)  # noqa: F821

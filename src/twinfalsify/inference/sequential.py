@@ -1,0 +1,425 @@
+"""Anytime-valid sequential testing of H_lo / H_up with early rejection and exact futility.
+
+Twin side: a betting confidence *sequence* (CS) for Q_twin (Waudby-Smith & Ramdas 2024,
+JRSS-B 86(1):1-27, Sec. 3-4, predictable plug-in bets for a CS), observed run by run in
+the order of the plan's seeded X_0 permutation. Rescale x = (clip(y) - y_lo) / R in [0, 1];
+for a candidate mean m,
+
+    K+_t(m) = prod_{i<=t} (1 + min(lambda_i, c/m) (x_i - m)),
+    K-_t(m) = prod_{i<=t} (1 - min(lambda_i, c/(1-m)) (x_i - m)),
+    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))),
+
+with mu_i, sigma2_i the running plug-in estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
+Unlike the fixed-n bets, lambda_i depends on neither n nor the final sample: it uses
+x_1..x_{i-1} and i only. Time runs over *all* runs in X_0 order (a run that does not enter
+contributes the factor 1), so K is a non-negative supermartingale in the filtration of the
+runs revealed so far whenever the true mean is <= m (K+) or >= m (K-), and Ville's
+inequality (Ville 1939; Howard et al. 2021, Ann. Stat. 49(2):1055-1080) gives
+P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence at any
+stopping time, however data-dependent.
+
+Observational side: the fixed-sample betting bound (``betting.ordered_sides``, fixed-n bets),
+unchanged. Union rule: reject H_lo at level a when some m has
+max_t K+_lo(m) >= 2/a and max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the
+crossing of the two curves (``betting._crossing``), evaluated with the twin data revealed
+at the stopping time tau. Mirror for H_up.
+
+Decisions after each batch (one-sided hypotheses; the family is the hypothesis kind, as in
+``falsify.run_tests``, 2H_f one-sided hypotheses):
+
+(a) early rejection: the rule rejects at a* = alpha / (2 H_f), the most stringent threshold
+    Holm can use. Because K+_lo(m) is non-increasing and K-_twin(m) non-decreasing in m,
+    this holds iff K-_twin(L*) >= 2/a* with L* = sup{m : max_t K+_lo(m) >= 2/a*} (one
+    evaluation, no search).
+(b) futility: no continuation of the twin data up to the budget can make the rule reject at
+    alpha (the most lenient Holm threshold). Every future factor of K-_twin(L) is at most
+    1 + lambda_bar L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every future bet,
+    ``future_bet_bound``: the bets shrink with the accumulated variance), and only runs whose
+    real X_0 lies in B_0 can ever enter, so the best reachable capital is
+    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + lambda_bar L)^r), r = remaining runs with X_0
+    in B_0.
+    This bounds the issue's "every remaining run at y_lo" path (and every other path), so
+    stopping never loses a rejection the full budget could have made. Mirror for H_up with
+    factor 1 + lambda_bar (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
+
+A parameter set keeps receiving runs while either side is undecided; its p-values are
+computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
+family-wise error stays controlled: docs/sequential.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.bounds import ObservationalSide, TwinNodes
+from twinfalsify.design import WHOLE_SPACE, StateBins, padded
+from twinfalsify.inference.betting import (
+    C_TRUNC,
+    OrderedSide,
+    _bound,
+    _crossing,
+    _layout,
+    _segment_cumsum,
+    log_capital,
+    ordered_sides,
+)
+from twinfalsify.inference.multiple_testing import correct
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.schema import FEATURES, T_MAX
+
+UNDECIDED, REJECTED, FUTILE = 0, 1, 2
+
+
+def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
+            index: np.ndarray | None = None) -> np.ndarray:
+    """WSR's predictable plug-in bets for a confidence sequence, per group.
+
+    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) (WSR 2024, eq. for
+    the "predictable plug-in" CS); ``i`` is the 1-based position among the group's values
+    (``index`` overrides it; positions only, never the group size). delta0: one per group.
+    """
+    sizes = np.diff(offsets)
+    gid, t = _layout(offsets)
+    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
+    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
+    prev = np.empty_like(sig2)
+    prev[1:] = sig2[:-1]
+    prev[offsets[:-1][sizes > 0]] = 0.25
+    i = t if index is None else index
+    k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
+    return np.minimum(c, np.sqrt(k / prev))
+
+
+@dataclass(frozen=True)
+class TwinRuns:
+    """Entering twin runs per hypothesis in X_0 order: raw outcome and run position."""
+
+    values: Ragged  # raw outcomes, X_0 order within each hypothesis
+    run: np.ndarray  # (total,) position of each value's run in the X_0 order
+    in_b0: np.ndarray  # (H, m) real X_0 in B_0 (runs that can ever enter)
+    failed: np.ndarray  # (H, m) run failed on the path (and X_0 in B_0)
+
+
+def twin_runs_indexed(
+    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+) -> TwinRuns:
+    """``bounds.twin_side`` plus each entering run's position (same entry rule).
+
+    Run i of a_1:t enters iff X_0 in B_0, Xtwin_s in B_s (s = 1..t) and no node of its
+    path failed (NaN). Agreement with ``bounds.twin_side`` is tested.
+    """
+    h_total = len(hyps)
+    m = nodes.x0.shape[0]
+    t_h = hyps["t"].to_numpy(np.int64)
+    b_pad = padded(hyps, "bins", t_max + 1)
+    paths = hypothesis_paths(hyps, nodes.index, t_max)
+    base0 = states.base_codes(nodes.x0)
+    in_b0 = np.zeros((h_total, m), dtype=bool)
+    failed_all = np.zeros((h_total, m), dtype=bool)
+    enter_all = np.zeros((h_total, m), dtype=bool)
+    last_all = np.zeros((h_total, m))
+    for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
+        k = FEATURES.index(outcome)
+        code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
+        vk = nodes.values[:, :, k]
+        p = paths[idx]
+        vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
+        on_path = p >= 0
+        failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)
+        codes = base0[None, None, :] + states.above(
+            outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
+        )
+        bs = b_pad[idx][:, 1:, None]
+        ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
+        b0 = b_pad[idx][:, 0][:, None]
+        ib0 = (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
+        in_b0[idx] = ib0
+        failed_all[idx] = failed & ib0
+        enter_all[idx] = ib0 & ok_s.all(axis=1) & ~failed
+        last_all[idx] = vals[np.arange(len(idx)), t_h[idx] - 1, :]
+    hh, ii = np.nonzero(enter_all)  # row-major: X_0 order within each hypothesis
+    sizes = np.bincount(hh, minlength=h_total)
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return TwinRuns(Ragged(last_all[hh, ii], offsets), ii.astype(np.int64), in_b0, failed_all)
+
+
+def hypothesis_paths(hyps: pd.DataFrame, index: dict, t_max: int = T_MAX) -> np.ndarray:
+    """(H, T) node index of a_1:s for s = 1..t (-1 beyond t)."""
+    paths = np.full((len(hyps), t_max), -1, dtype=np.int64)
+    for i, seq in enumerate(hyps["actions"].tolist()):
+        for s in range(1, len(seq) + 1):
+            key = tuple(int(a) for a in seq[:s])
+            if key not in index:
+                raise KeyError(f"twin nodes: no node {key} for hypothesis row {i}")
+            paths[i, s - 1] = index[key]
+    return paths
+
+
+def family_sizes(hyps: pd.DataFrame) -> np.ndarray:
+    """Number of one-sided hypotheses (2 H_f) in each hypothesis' family (its kind)."""
+    kind = hyps["kind"] if "kind" in hyps else pd.Series(["all"] * len(hyps))
+    return 2 * kind.map(kind.value_counts()).to_numpy(np.int64)
+
+
+@dataclass
+class SequentialState:
+    """Decisions of a sequential test; updated batch by batch (see module doc).
+
+    ``budget``: runs per sequence at most (the plan's m by default); ``n_family``: 2 H_f per
+    hypothesis (defaults to :func:`family_sizes`). ``only``: a shard runs its own hypotheses
+    but builds the state on the whole study, so the observational order and bets (seeded
+    over all hypotheses) and hence every decision equal the unsharded ones.
+    """
+
+    hyps: pd.DataFrame
+    obs: ObservationalSide
+    states: StateBins
+    budget: int
+    batch_size: int
+    alpha: float = 0.05
+    seed: int = 0
+    c: float = C_TRUNC
+    n_family: np.ndarray | None = None
+    only: np.ndarray | None = None  # (H,) bool: hypotheses to run (others never receive runs)
+    side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
+    stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
+
+    def __post_init__(self) -> None:
+        h = len(self.hyps)
+        if self.batch_size < 1 or self.budget < 0:
+            raise ValueError(f"sequential: batch_size must be >= 1 and budget >= 0, got "
+                             f"{self.batch_size}, {self.budget}")
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"sequential: alpha must be in (0, 1), got {self.alpha}")
+        nf = family_sizes(self.hyps) if self.n_family is None else np.asarray(self.n_family)
+        self.n_family = np.broadcast_to(nf, (h,)).astype(np.int64)
+        self.a_star = self.alpha / self.n_family  # most stringent Holm threshold
+        # bets tuned where Holm decides (as betting_test's default), per family
+        self.delta0 = self.a_star / 2
+        self.y_lo = self.hyps["y_lo"].to_numpy(float)
+        self.y_up = self.hyps["y_up"].to_numpy(float)
+        if np.any(~(self.y_up > self.y_lo)):
+            raise ValueError("sequential: y_up must exceed y_lo for every hypothesis")
+        empty = Ragged(np.zeros(0), np.zeros(h + 1, dtype=np.int64))
+        self.obs_samples = HypothesisSamples(self.y_lo, self.y_up, self.obs.n,
+                                             self.obs.follow, empty)
+        self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c)
+        lev_star, lev = np.log(2.0 / self.a_star), np.full(h, np.log(2.0 / self.alpha))
+        # L = sup{m: max K+_lo(m) >= 2/a}; U = inf{m: max K-_up(m) >= 2/a}
+        # bounds are per hypothesis: compute them only where they are used (a shard's own);
+        # elsewhere L = 0, U = 1 (never rejectable; those hypotheses never receive runs)
+        g = np.arange(h) if self.only is None else np.flatnonzero(self.only)
+        lo, up = self.lo.take(g), self.up.take(g)
+        self.l_star, self.l_fut = np.zeros(h), np.zeros(h)
+        self.u_star, self.u_fut = np.ones(h), np.ones(h)
+        self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
+        self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
+        self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
+        self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
+        self.side = np.zeros((h, 2), dtype=np.int8)
+        self.stop_batch = np.full(h, -1, dtype=np.int64)
+        no_obs = self.obs.n == 0  # p = 1 by rule: nothing to learn from the twin
+        self.side[no_obs] = FUTILE
+        self.stop_batch[no_obs] = 0
+        if self.only is not None:
+            self.stop_batch[~np.asarray(self.only, bool)] = 0
+        self.n_batches = -(-self.budget // self.batch_size)
+
+    @property
+    def active(self) -> np.ndarray:
+        """Hypotheses still receiving runs."""
+        return self.stop_batch < 0
+
+    def revealed(self, b: int) -> int:
+        return min(b * self.batch_size, self.budget)
+
+    def _twin_prefix(self, runs: TwinRuns, upto: np.ndarray, groups: np.ndarray
+                     ) -> tuple[OrderedSide, np.ndarray]:
+        """Ordered twin sides (CS bets) of ``groups`` with runs < upto[group]; and nhat."""
+        v = runs.values
+        gid = v.group_ids()
+        sel = np.isin(gid, groups) & (runs.run < upto[gid])
+        g = gid[sel]
+        sizes = np.bincount(np.searchsorted(groups, g), minlength=len(groups))
+        offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        x = (np.clip(v.values[sel], self.y_lo[g], self.y_up[g]) - self.y_lo[g]) / (
+            self.y_up[g] - self.y_lo[g])
+        lam = cs_bets(x, offs, self.delta0[groups], self.c)
+        return OrderedSide(x, lam, offs), sizes
+
+    def update(self, runs: TwinRuns, b: int) -> None:
+        """Decide with the first ``revealed(b)`` runs of every still-active hypothesis."""
+        act = np.flatnonzero(self.active)
+        if len(act) == 0:
+            return
+        j = self.revealed(b)
+        upto = np.full(len(self.hyps), j)
+        tw, nhat = self._twin_prefix(runs, upto, act)
+        und = self.side[act] == UNDECIDED
+        # (a) early rejection at a*: twin capital at the observational bound at a*
+        lev_star = np.log(2.0 / self.a_star[act])
+        rej_lo = log_capital(tw, self.l_star[act], -1, True, self.c) >= lev_star
+        rej_up = log_capital(tw, self.u_star[act], +1, True, self.c) >= lev_star
+        # (b) futility at alpha: best reachable capital up to the budget
+        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
+        lev = np.log(2.0 / self.alpha)
+        lf, uf = self.l_fut[act], self.u_fut[act]
+        lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
+        best_lo = np.maximum(
+            log_capital(tw, lf, -1, True, self.c),
+            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(lam * lf))
+        best_up = np.maximum(
+            log_capital(tw, uf, +1, True, self.c),
+            log_capital(tw, uf, +1, False, self.c) + r * np.log1p(lam * (1 - uf)))
+        new = np.stack([np.where(rej_lo, REJECTED, np.where(best_lo < lev, FUTILE, UNDECIDED)),
+                        np.where(rej_up, REJECTED, np.where(best_up < lev, FUTILE, UNDECIDED))],
+                       axis=1).astype(np.int8)
+        self.side[act] = np.where(und, new, self.side[act])
+        # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
+        done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
+        self.stop_batch[act[done]] = b
+
+    def runs_used(self) -> np.ndarray:
+        """(H,) runs revealed to each hypothesis at its stop (budget if still running)."""
+        sb = np.where(self.stop_batch < 0, self.n_batches, self.stop_batch)
+        return np.minimum(sb * self.batch_size, self.budget)
+
+    def p_values(self, runs: TwinRuns) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_lo, p_up, nhat) at each hypothesis' stopping time (p = 1 if n or nhat is 0)."""
+        h = len(self.hyps)
+        used = self.runs_used()
+        groups = np.arange(h)
+        tw, nhat = self._twin_prefix(runs, used, groups)
+        p_lo, p_up = np.ones(h), np.ones(h)
+        ok = (self.obs.n > 0) & (nhat > 0)
+        if ok.any():
+            g = np.flatnonzero(ok)
+            lo, up, t = self.lo.take(g), self.up.take(g), tw.take(g)
+            s = self.obs_samples
+            r = s.width[g]
+            q_lo = (s.q_lo_hat[g] - self.y_lo[g]) / r
+            q_up = (s.q_up_hat[g] - self.y_lo[g]) / r
+            q_tw = _group_means(t)
+            k_lo = _crossing(lo, t, 0.5 * (q_lo + q_tw), True, self.c, 1e-3, 100)
+            k_up = _crossing(t, up, 0.5 * (q_up + q_tw), True, self.c, 1e-3, 100)
+            p_lo[g] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
+            p_up[g] = np.minimum(1.0, 2.0 * np.exp(-k_up))
+        # an early rejection was verified exactly at a*: p <= a* (crossing may overstate by tol)
+        p_lo = np.where(self.side[:, 0] == REJECTED, np.minimum(p_lo, self.a_star), p_lo)
+        p_up = np.where(self.side[:, 1] == REJECTED, np.minimum(p_up, self.a_star), p_up)
+        return p_lo, p_up, nhat
+
+
+def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
+                     c: float = C_TRUNC) -> np.ndarray:
+    """Upper bound on every future CS bet of each group, whatever the future values.
+
+    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) and
+    sigma2_{i-1} i = 1/4 + sum_{j<i} (x_j - mu_j)^2 >= 1/4 + S_tau for i > tau (the sum only
+    grows), log(1 + i) >= log(2 + tau): so lambda_i <= min(c, sqrt(2 log(1/delta0) /
+    ((1/4 + S_tau) log(2 + tau)))) for every i > tau (tau = nhat so far).
+    """
+    gid, t = _layout(side.offsets)
+    mu = (0.5 + _segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
+    sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
+    s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
+    k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
+    return np.minimum(c, np.sqrt(k))
+
+
+def _group_means(side: OrderedSide) -> np.ndarray:
+    s = np.concatenate([[0.0], np.cumsum(side.x)])
+    n = side.sizes
+    return np.where(n > 0, (s[side.offsets[1:]] - s[side.offsets[:-1]]) / np.maximum(n, 1), 0.5)
+
+
+@dataclass(frozen=True)
+class AdaptiveOutcome:
+    p_lo: np.ndarray  # (H,) anytime-valid p-values at the stopping time
+    p_up: np.ndarray
+    stop_batch: np.ndarray  # (H,) batches revealed when the parameter set stopped
+    runs_used: np.ndarray  # (n_nodes,) runs simulated per node (prefix reuse)
+    runs_per_hypothesis: np.ndarray  # (H,) runs revealed to each hypothesis
+    decision: np.ndarray  # (H, 2) UNDECIDED/REJECTED/FUTILE per side at the stop
+    nhat: np.ndarray  # (H,) entering twin runs at the stop
+    rejected_lo: np.ndarray  # (H,) after the correction (per family = kind)
+    rejected_up: np.ndarray
+    twin_hours_adaptive: int
+    twin_hours_fixed: int
+
+
+def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarray:
+    """Runs needed per node: max over hypotheses whose path uses it (prefix reuse)."""
+    out = np.zeros(n_nodes, dtype=np.int64)
+    on = paths >= 0
+    np.maximum.at(out, paths[on], np.broadcast_to(per_hyp[:, None], paths.shape)[on])
+    return out
+
+
+def embed_runs(runs: TwinRuns, idx: np.ndarray, h: int) -> TwinRuns:
+    """TwinRuns of the hypotheses ``idx`` (sorted) placed in a study of h (others empty)."""
+    sizes = np.zeros(h, dtype=np.int64)
+    sizes[idx] = runs.values.sizes
+    m = runs.in_b0.shape[1]
+    in_b0, failed = np.zeros((h, m), bool), np.zeros((h, m), bool)
+    in_b0[idx], failed[idx] = runs.in_b0, runs.failed
+    offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return TwinRuns(Ragged(runs.values.values, offs), runs.run, in_b0, failed)
+
+
+def run_to_stop(st: SequentialState, runs: TwinRuns) -> None:
+    """Reveal batch after batch (batch 0 = no twin run) until every hypothesis stopped."""
+    for b in range(0, st.n_batches + 1):
+        st.update(runs, b)
+        if not st.active.any():
+            break
+
+
+def adaptive_test(
+    hyps: pd.DataFrame,
+    obs: ObservationalSide,
+    nodes: TwinNodes,
+    states: StateBins,
+    *,
+    batch_size: int,
+    alpha: float = 0.05,
+    correction: str = "holm",
+    budget: int | None = None,
+    seed: int = 0,
+    c: float = C_TRUNC,
+) -> AdaptiveOutcome:
+    """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
+
+    Twin-hours with prefix reuse: node a_1:s costs one hour per run revealed to any
+    hypothesis whose path uses it; the fixed scheme simulates every node for the budget.
+    """
+    m = nodes.x0.shape[0]
+    budget = m if budget is None else int(budget)
+    if not 0 <= budget <= m:
+        raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
+    runs = twin_runs_indexed(hyps, nodes, states)
+    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c)
+    run_to_stop(st, runs)
+    p_lo, p_up, nhat = st.p_values(runs)
+    per_hyp = st.runs_used()
+    used = node_runs(hypothesis_paths(hyps, nodes.index), per_hyp, len(nodes.index))
+    rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
+    return AdaptiveOutcome(
+        p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
+        int(used.sum()), int(len(nodes.index) * budget),
+    )
+
+
+def correct_by_family(hyps: pd.DataFrame, p_lo: np.ndarray, p_up: np.ndarray, alpha: float,
+                      correction: str) -> tuple[np.ndarray, np.ndarray]:
+    """Holm / BY over both sides of every hypothesis of a family (kind), as run_tests does."""
+    kind = hyps["kind"].to_numpy() if "kind" in hyps else np.zeros(len(hyps))
+    rej_lo, rej_up = np.zeros(len(hyps), bool), np.zeros(len(hyps), bool)
+    for k in pd.unique(kind):
+        idx = np.flatnonzero(kind == k)
+        r = correct(np.concatenate([p_lo[idx], p_up[idx]]), alpha, correction)
+        rej_lo[idx], rej_up[idx] = r[: len(idx)], r[len(idx):]
+    return rej_lo, rej_up

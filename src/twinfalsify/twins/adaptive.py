@@ -1,0 +1,244 @@
+"""Adaptive twin runs: simulate a shard batch by batch, stop what is decided.
+
+The shard holds the plan's leaves with some first actions (``plan.shards``); its hypotheses
+are those whose sequence starts with one of them (so no node is shared across shards).
+Batch b (b = 1, 2, ...) is the slice [(b-1) s, b s) of the plan's seeded X_0 permutation
+(s = batch size, capped at the budget). Before batch 1 the observational side alone can
+settle a hypothesis (futility: its bound at alpha is uninformative). At each batch the
+nodes still needed are the paths of the hypotheses that are still running (prefix reuse:
+a node is needed while any hypothesis on its path is undecided); only the leaves of that
+sub-tree are simulated, and their hours fill every node on their path. After the batch,
+``inference.sequential.SequentialState.update`` decides early rejection / futility.
+
+Outputs (every simulated run accounted for): the node rows actually simulated (the fixed
+scheme's shape, ``plan.NODE_COLUMNS``), and one decision row per hypothesis of the shard
+(stop batch, runs used, decision per side, anytime-valid p-values at the stop, nhat,
+n_failed). Runs never simulated are not rows: ``runs_used`` says how many X_0 each
+hypothesis received, and ``runs_saved`` in the summary counts node-runs not simulated.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify.bounds import ObservationalSide, TwinNodes
+from twinfalsify.design import ActionBins, StateBins
+from twinfalsify.inference.sequential import (
+    SequentialState,
+    embed_runs,
+    family_sizes,
+    hypothesis_paths,
+    node_runs,
+    twin_runs_indexed,
+)
+from twinfalsify.schema import FEATURES, STAY_ID, ContractError
+from twinfalsify.twins.base import Twin
+from twinfalsify.twins.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
+
+DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile"}
+DECISION_COLUMNS = (
+    "hyp_id", "stop_batch", "runs_used", "decision_lo", "decision_up", "p_lo", "p_up",
+    "nhat", "n_failed",
+)  # fmt: skip
+
+
+def shard_hypotheses(hyps: pd.DataFrame, plan: TwinPlan, shard: int) -> np.ndarray:
+    """(H,) bool: hypotheses whose first action is one of the shard's."""
+    if not 0 <= shard < len(plan.shards):
+        raise ContractError(f"twin shard {shard} does not exist (plan has {len(plan.shards)})")
+    firsts = {parse_node(leaf)[0] for leaf in plan.shards[shard]}
+    return np.array([int(seq[0]) in firsts for seq in hyps["actions"].tolist()], dtype=bool)
+
+
+def _leaf_cover(needed: set[tuple[int, ...]]) -> list[tuple[int, ...]]:
+    """Needed nodes that are not a proper prefix of another needed node."""
+    return sorted(n for n in needed if not any(o[: len(n)] == n and o != n for o in needed))
+
+
+def _rows(name: str, s: int, vals: np.ndarray, res_status: np.ndarray, msg: np.ndarray,
+          clamped: np.ndarray, stays: np.ndarray) -> pd.DataFrame:
+    done = np.isfinite(vals).all(axis=1)
+    f = pd.DataFrame(vals, columns=list(FEATURES))
+    f.insert(0, "clamped", clamped)
+    f.insert(0, "message", np.where(done, "", msg))
+    f.insert(0, "status", np.where(done, "ok", np.where(res_status == "ok", "error", res_status)))
+    f.insert(0, "init_stay_id", stays)
+    f.insert(0, "t", s)
+    f.insert(0, "node", name)
+    return f
+
+
+def run_adaptive_shard(
+    twin: Twin,
+    plan: TwinPlan,
+    shard: int,
+    x0: pd.DataFrame,
+    actions: ActionBins,
+    hyps: pd.DataFrame,
+    obs: ObservationalSide,
+    states: StateBins,
+    *,
+    batch_size: int,
+    alpha: float = 0.05,
+    seed: int = 0,
+    budget: int | None = None,
+    log=sys.stderr,
+) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+    """Simulate one shard adaptively: (node rows simulated, decisions, summary)."""
+    m = len(plan.x0_stay_ids)
+    budget = m if budget is None else min(int(budget), m)
+    mine = shard_hypotheses(hyps, plan, shard)
+    idx = np.flatnonzero(mine)
+    index = {parse_node(n): i for i, n in enumerate(plan.nodes)}
+    nodes = TwinNodes(index=index, values=np.full((len(index), m, len(FEATURES)), np.nan),
+                      x0=x0[list(FEATURES)].to_numpy(float))
+    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed,
+                         n_family=family_sizes(hyps), only=mine)
+    sub = hyps.iloc[idx]
+    seqs = [tuple(int(a) for a in s) for s in sub["actions"].tolist()]
+    seeds = plan.run_seeds()
+    stays = x0[STAY_ID].to_numpy(np.int64)
+    frames: list[pd.DataFrame] = []
+    start = time.monotonic()
+    h_total = len(hyps)
+
+    def runs_now():
+        return embed_runs(twin_runs_indexed(sub, nodes, states), idx, h_total)
+
+    st.update(runs_now(), 0)
+    sim_node_runs = 0
+    for b in range(1, st.n_batches + 1):
+        act = st.active[idx]
+        if not act.any():
+            break
+        j0, j1 = st.revealed(b - 1), st.revealed(b)
+        needed = {s[:k] for s, a in zip(seqs, act, strict=True) if a
+                  for k in range(1, len(s) + 1)}
+        done_nodes: set[tuple[int, ...]] = set()
+        for leaf in _leaf_cover(needed):
+            doses = np.broadcast_to(actions.doses(np.asarray(leaf)), (j1 - j0, len(leaf), 2))
+            res = twin.simulate(x0.iloc[j0:j1].reset_index(drop=True), doses.copy(),
+                                seeds[j0:j1])
+            if res.features.shape != (j1 - j0, len(leaf), len(FEATURES)):
+                raise ContractError(
+                    f"twin {twin.name}: simulate returned features of shape "
+                    f"{res.features.shape}, expected {(j1 - j0, len(leaf), len(FEATURES))}")
+            for s in range(1, len(leaf) + 1):
+                node = leaf[:s]
+                if node in done_nodes:
+                    continue
+                done_nodes.add(node)
+                vals = res.features[:, s - 1, :]
+                nodes.values[index[node], j0:j1] = vals
+                frames.append(_rows(node_name(node), s, vals, res.status, res.message,
+                                    res.clamped, stays[j0:j1]))
+        sim_node_runs += len(done_nodes) * (j1 - j0)
+        st.update(runs_now(), b)
+        running = int(st.active[idx].sum())
+        fixed = len({s[:k] for s in seqs for k in range(1, len(s) + 1)}) * budget
+        print(f"[adaptive {twin.name} shard {shard}] batch {b}/{st.n_batches} (X_0 {j1}/{budget})"
+              f": {len(idx) - running} decided, {running} undecided parameter sets; "
+              f"node-runs {sim_node_runs:,} of {fixed:,} ({fixed - sim_node_runs:,} saved), "
+              f"{time.monotonic() - start:.1f} s", file=log, flush=True)
+    runs = runs_now()
+    p_lo, p_up, nhat = st.p_values(runs)
+    used = st.runs_used()
+    n_failed = np.array([runs.failed[h, : used[h]].sum() for h in range(h_total)])
+    dec = pd.DataFrame({
+        "hyp_id": hyps["hyp_id"].to_numpy()[idx], "stop_batch": st.stop_batch[idx],
+        "runs_used": used[idx],
+        "decision_lo": [DECISION_NAMES[int(v)] for v in st.side[idx, 0]],
+        "decision_up": [DECISION_NAMES[int(v)] for v in st.side[idx, 1]],
+        "p_lo": p_lo[idx], "p_up": p_up[idx], "nhat": nhat[idx], "n_failed": n_failed[idx],
+    })  # fmt: skip
+    rows = (pd.concat(frames, ignore_index=True) if frames
+            else pd.DataFrame(columns=list(NODE_COLUMNS)))
+    paths = hypothesis_paths(sub, index)
+    per_node = node_runs(paths, used[idx], len(index))
+    shard_nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
+    summary = {
+        "shard": shard, "batch_size": int(batch_size), "budget": budget,
+        "parameter_sets": len(idx), "node_rows": len(rows),
+        "twin_hours_adaptive": int(per_node.sum()),
+        "twin_hours_fixed": len(shard_nodes) * budget,
+        "runs_saved": len(shard_nodes) * budget - len(rows),
+        "decisions": {
+            side: pd.Series(dec[f"decision_{side}"]).value_counts().to_dict()
+            for side in ("lo", "up")
+        },
+    }
+    if len(rows) != summary["twin_hours_adaptive"]:
+        raise AssertionError(
+            f"adaptive shard {shard}: {len(rows)} node rows but {per_node.sum()} node-runs "
+            "revealed: accounting broken")
+    return rows, dec.loc[:, list(DECISION_COLUMNS)], summary
+
+
+def load_simulated(rows: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNodes:
+    """Simulated node rows -> TwinNodes (NaN for runs never simulated or failed)."""
+    names = plan.nodes
+    m = len(plan.x0_stay_ids)
+    values = np.full((len(names), m, len(FEATURES)), np.nan)
+    node_idx = rows["node"].map({n: i for i, n in enumerate(names)})
+    run_idx = rows["init_stay_id"].map({s: j for j, s in enumerate(plan.x0_stay_ids)})
+    if node_idx.isna().any() or run_idx.isna().any():
+        raise ContractError("adaptive twin runs hold node(s) or X_0 not in the plan")
+    if rows.duplicated(["node", "init_stay_id"]).any():
+        raise ContractError("adaptive twin runs: duplicated (node, X_0) rows across shards")
+    ok = (rows["status"] == "ok").to_numpy()
+    values[node_idx.to_numpy(int)[ok], run_idx.to_numpy(int)[ok], :] = rows.loc[
+        ok, list(FEATURES)].to_numpy(float)
+    return TwinNodes(index={parse_node(n): i for i, n in enumerate(names)}, values=values,
+                     x0=x0[list(FEATURES)].to_numpy(float))
+
+
+def adaptive_results(
+    hyps: pd.DataFrame, obs: ObservationalSide, nodes: TwinNodes, states: StateBins,
+    decisions: pd.DataFrame, *, alpha: float = 0.05, correction: str = "holm",
+) -> pd.DataFrame:
+    """The tests stage's long results table from adaptive decisions (method betting_sequential).
+
+    Descriptive columns (nhat, q_twin_hat, ...) use the twin runs revealed at the stop;
+    p-values are the shards' anytime-valid ones; the correction runs per kind on them.
+    """
+    from twinfalsify.falsify import RESULT_COLUMNS
+    from twinfalsify.inference.samples import HypothesisSamples, Ragged
+    from twinfalsify.inference.sequential import correct_by_family
+
+    dec = decisions.set_index("hyp_id")
+    missing = set(hyps["hyp_id"]) - set(dec.index)
+    if missing:
+        raise ContractError(f"adaptive decisions: {len(missing)} hypothesis(es) missing, e.g. "
+                            f"{sorted(missing)[:3]}")
+    dec = dec.loc[hyps["hyp_id"]]
+    runs = twin_runs_indexed(hyps, nodes, states)
+    used = dec["runs_used"].to_numpy(np.int64)
+    keep = runs.run < used[runs.values.group_ids()]
+    twin = Ragged(runs.values.values[keep], np.concatenate(
+        [[0], np.cumsum(np.bincount(runs.values.group_ids()[keep], minlength=len(hyps)))]
+    ).astype(np.int64))
+    if not np.array_equal(twin.sizes, dec["nhat"].to_numpy()):
+        raise ContractError("adaptive decisions: nhat disagrees with the simulated runs")
+    s = HypothesisSamples(hyps["y_lo"].to_numpy(float), hyps["y_up"].to_numpy(float), obs.n,
+                          obs.follow, twin)
+    p_lo, p_up = dec["p_lo"].to_numpy(float), dec["p_up"].to_numpy(float)
+    rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
+    parts = []
+    for side, p, rej in (("lo", p_lo, rej_lo), ("up", p_up, rej_up)):
+        parts.append(pd.DataFrame({
+            "hyp_id": hyps["hyp_id"].to_numpy(), "kind": hyps["kind"].to_numpy(),
+            "outcome": hyps["outcome"].to_numpy(), "t": hyps["t"].to_numpy(), "side": side,
+            "method": "betting_sequential", "n": s.n, "n_follow": s.n_follow, "nhat": s.nhat,
+            "n_failed": dec["n_failed"].to_numpy(), "y_lo": s.y_lo, "y_up": s.y_up,
+            "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
+            "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
+            "rejected": rej, "correction": correction, "alpha": alpha,
+            "stop_batch": dec["stop_batch"].to_numpy(), "runs_used": used,
+            "decision": dec[f"decision_{side}"].to_numpy(),
+        }))  # fmt: skip
+    out = pd.concat(parts, ignore_index=True)
+    return out.loc[:, [*RESULT_COLUMNS, "stop_batch", "runs_used", "decision"]]

@@ -1,0 +1,176 @@
+"""Sequential (anytime-valid) testing: confidence-sequence coverage, exact futility,
+early rejection consistent with the p-value, prefix-reuse accounting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twinfalsify.bounds import ObservationalSide
+from twinfalsify.inference.betting import OrderedSide, log_capital
+from twinfalsify.inference.samples import Ragged
+from twinfalsify.inference.sequential import (
+    FUTILE,
+    REJECTED,
+    UNDECIDED,
+    SequentialState,
+    TwinRuns,
+    cs_bets,
+    future_bet_bound,
+    node_runs,
+    run_to_stop,
+)
+
+
+def _side(x: np.ndarray, delta0: float) -> OrderedSide:
+    g, n = x.shape
+    offs = np.arange(g + 1, dtype=np.int64) * n
+    return OrderedSide(x.ravel(), cs_bets(x.ravel(), offs, np.full(g, delta0)), offs)
+
+
+def test_cs_bets_are_predictable_and_ignore_the_sample_size():
+    """Bets of a prefix equal the first bets of the whole sequence (no dependence on n)."""
+    rng = np.random.default_rng(0)
+    x = rng.beta(2, 5, 300)
+    full = cs_bets(x, np.array([0, 300]), np.array([0.01]))
+    part = cs_bets(x[:120], np.array([0, 120]), np.array([0.01]))
+    np.testing.assert_array_equal(full[:120], part)
+    # changing x_i changes bets after i only
+    y = x.copy()
+    y[50] = 1 - y[50]
+    other = cs_bets(y, np.array([0, 300]), np.array([0.01]))
+    np.testing.assert_array_equal(other[:51], full[:51])
+    assert not np.array_equal(other[51:], full[51:])
+
+
+def test_future_bet_bound_dominates_every_continuation():
+    """Brute force: random, all-0, all-1 and alternating futures never bet above the bound."""
+    rng = np.random.default_rng(6)
+    for tau in (0, 1, 30, 200):
+        x = rng.beta(2, 5, tau)
+        side = OrderedSide(x, cs_bets(x, np.array([0, tau]), np.array([1e-4])), np.array([0, tau]))
+        bound = future_bet_bound(side, np.array([tau]), np.array([1e-4]))[0]
+        futures = [rng.random(300), np.zeros(300), np.ones(300), np.tile([0.0, 1.0], 150),
+                   np.full(300, x.mean() if tau else 0.5)]
+        for fut in futures:
+            y = np.concatenate([x, fut])
+            lam = cs_bets(y, np.array([0, len(y)]), np.array([1e-4]))[tau:]
+            assert lam.max() <= bound + 1e-12, (tau, lam.max(), bound)
+
+
+@pytest.mark.parametrize("dist", ["bernoulli", "beta"])
+def test_confidence_sequence_is_time_uniform(dist):
+    """P(exists t <= n: K_t(true mean) >= 1/delta) <= delta, for K+ and K- (Ville)."""
+    rng = np.random.default_rng(1)
+    g, n, delta = 4000, 400, 0.1
+    if dist == "bernoulli":
+        x, mu = (rng.random((g, n)) < 0.3).astype(float), 0.3
+    else:
+        x, mu = rng.beta(2, 2, (g, n)), 0.5
+    side = _side(x, delta)  # bets tuned at the level tested: the least favourable case
+    m = np.full(g, mu)
+    se = np.sqrt(delta * (1 - delta) / g)
+    for sign in (+1, -1):
+        hit = log_capital(side, m, sign, running_max=True) >= np.log(1 / delta)
+        assert hit.mean() <= delta + 3 * se, (sign, hit.mean())
+        assert hit.mean() > 0.005  # the test has teeth: the sequence does get near the level
+
+
+def _world(h: int, n_obs: int, m: int, q_lo: float, twin_mean: float, propensity: float,
+           rng: np.random.Generator, b0_frac: float = 1.0):
+    """h hypotheses in [0, 1]: obs followers Beta-ish around q/propensity, twin Bernoulli-ish."""
+    hyps = pd.DataFrame({"y_lo": 0.0, "y_up": 1.0, "kind": "causal"}, index=range(h))
+    nf = rng.binomial(n_obs, propensity, h)
+    # follower mean f_mean so that Q_lo = propensity * f_mean = q_lo
+    f_mean = min(q_lo / propensity, 1.0)
+    follow = Ragged.from_groups([rng.beta(4 * f_mean, 4 * (1 - f_mean), k) for k in nf])
+    obs = ObservationalSide(n=np.full(h, n_obs), follow=follow)
+    in_b0 = rng.random((h, m)) < b0_frac
+    enter = in_b0 & (rng.random((h, m)) < 0.8)
+    hh, ii = np.nonzero(enter)
+    vals = rng.beta(4 * twin_mean, 4 * (1 - twin_mean), len(hh))
+    sizes = np.bincount(hh, minlength=h)
+    runs = TwinRuns(Ragged(vals, np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)),
+                    ii.astype(np.int64), in_b0, np.zeros((h, m), bool))
+    return hyps, obs, runs
+
+
+def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary():
+    """Twin mean = Q_lo (H_lo true, at its boundary): P(p_lo <= a) <= a at data-dependent stops."""
+    rng = np.random.default_rng(2)
+    h = 2000
+    hyps, obs, runs = _world(h, 300, 400, q_lo=0.4, twin_mean=0.4, propensity=1.0, rng=rng)
+    st = SequentialState(hyps, obs, None, budget=400, batch_size=25, alpha=0.05,
+                         n_family=np.full(h, 20))  # lenient a* = 0.0025: more early stops
+    run_to_stop(st, runs)
+    p_lo, _, _ = st.p_values(runs)
+    for a in (0.05, 0.2, 0.5):
+        assert (p_lo <= a).mean() <= a + 3 * np.sqrt(a * (1 - a) / h), a
+
+
+def _state(hyps, obs, runs, budget, batch, **kw) -> SequentialState:
+    st = SequentialState(hyps, obs, None, budget=budget, batch_size=batch, **kw)
+    run_to_stop(st, runs)
+    return st
+
+
+def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
+    """Brute force: the same data run to the budget without stopping (one batch)."""
+    rng = np.random.default_rng(3)
+    h, m = 600, 600
+    parts = [_world(h // 3, 400, m, 0.4, tm, 0.7, rng, b0_frac=0.3) for tm in (0.05, 0.15, 0.3)]
+    hyps = pd.concat([p[0] for p in parts], ignore_index=True)
+    obs = ObservationalSide(np.concatenate([p[1].n for p in parts]), Ragged.from_groups(
+        [g for p in parts for g in (p[1].follow.group(i) for i in range(len(p[1].follow)))]))
+    runs = TwinRuns(
+        Ragged.from_groups([p[2].values.group(i) for p in parts for i in range(len(p[2].values))]),
+        np.concatenate([p[2].run for p in parts]),
+        np.concatenate([p[2].in_b0 for p in parts]), np.concatenate([p[2].failed for p in parts]))
+    nf = np.full(h, 2 * h)
+    seq = _state(hyps, obs, runs, m, 20, n_family=nf)
+    full = _state(hyps, obs, runs, m, m, n_family=nf)  # batch 0, then everything
+    p_full_lo, p_full_up, _ = full.p_values(runs)
+    p_lo, p_up, _ = seq.p_values(runs)
+    dec = seq.side
+    assert (dec == REJECTED).sum() > 20 and (dec == FUTILE).sum() > 20  # both rules act
+    # futile: not rejectable at alpha even with every run of the budget
+    assert np.all(p_full_lo[dec[:, 0] == FUTILE] > 0.05)
+    assert np.all(p_full_up[dec[:, 1] == FUTILE] > 0.05)
+    # early rejection verified exactly at a*: the crossing p agrees (to its tolerance)
+    a_star = 0.05 / nf
+    assert np.all(p_lo[dec[:, 0] == REJECTED] <= a_star[0])
+    assert np.all(p_full_lo[dec[:, 0] == REJECTED] <= a_star[0] * 1.003)
+    # sides still undecided at the budget agree with the fixed computation at the budget
+    both = (seq.stop_batch == seq.n_batches) & (dec[:, 0] == UNDECIDED)
+    np.testing.assert_allclose(p_lo[both], p_full_lo[both], rtol=1e-9)
+    # stopping saved runs
+    assert seq.runs_used().mean() < 0.8 * m
+
+
+def test_no_twin_run_when_the_observational_bound_is_uninformative():
+    """Obs lower bound at alpha is 0 (no followers): H_lo futile before any run is simulated."""
+    rng = np.random.default_rng(4)
+    hyps, obs, runs = _world(50, 200, 300, 0.4, 0.1, 1.0, rng)
+    obs = ObservationalSide(obs.n, Ragged.from_groups([np.zeros(0)] * 50))  # Y_lo = y_lo only
+    st = _state(hyps, obs, runs, 300, 50, n_family=np.full(50, 100))
+    assert np.all(st.side[:, 0] == FUTILE)
+    assert np.all(st.side[:, 1] == FUTILE)  # Y_up = y_up only: upper bound 1, never rejectable
+    assert np.all(st.stop_batch == 0) and np.all(st.runs_used() == 0)
+
+
+def test_node_runs_count_prefix_reuse():
+    """Node hours = max over hypotheses whose path uses the node (worked by hand)."""
+    paths = np.array([[0, -1], [0, 1], [0, 2], [3, -1]])  # a, a-b, a-c, d
+    per_hyp = np.array([10, 40, 25, 0])
+    np.testing.assert_array_equal(node_runs(paths, per_hyp, 4), [40, 40, 25, 0])
+
+
+def test_bad_input_raises():
+    rng = np.random.default_rng(5)
+    hyps, obs, _ = _world(3, 20, 10, 0.4, 0.4, 1.0, rng)
+    with pytest.raises(ValueError, match="batch_size"):
+        SequentialState(hyps, obs, None, budget=10, batch_size=0)
+    bad = hyps.assign(y_up=0.0)
+    with pytest.raises(ValueError, match="y_up must exceed y_lo"):
+        SequentialState(bad, obs, None, budget=10, batch_size=5)
