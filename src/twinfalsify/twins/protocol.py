@@ -5,18 +5,23 @@ One JSON object per line in each direction; logs go to stderr, never stdout.
     -> {"op": "hello", "protocol": 1}
     <- {"op": "hello", "ok": true, "name": str, "version": str, "protocol": 1,
         "features": [{"name": str, "unit": str}, ...],
-        "capabilities": {"save_restore": bool, "max_hours": int}}
+        "capabilities": {"save_restore": bool, "max_hours": int, "batch": int}}
     -> {"op": "simulate", "id": str, "x0": {feature: value, ...},
         "doses": [[iv_mL_per_h, vaso_ug_per_kg_min], ...], "hours": t, "seed": int}
     <- {"op": "result", "id": str, "status": "ok"|"init_failed"|"irreversible"|"error",
         "message": str, "hours": [{feature: value, ...}, ...],   # completed hours 1..s
         "clamped": {feature: [given, used], ...}}
+    -> {"op": "simulate_batch", "requests": [<simulate request>, ...]}   # optional
+    <- {"op": "results", "results": [<result answer>, ...]}             # same order
     -> {"op": "shutdown"}
     <- {"op": "bye"}
 
 ``hours`` holds every hour that completed before a failure, so prefix nodes of
 a failed run stay usable. The caller adds "timeout" when a run exceeds its time
-limit. See docs/twin-protocol.md for the full description.
+limit. ``simulate_batch`` is an optional capability within version 1: the
+caller sends it only to a twin whose hello advertises ``capabilities.batch``
+> 1 (``serve_forever`` answers it for every twin). See docs/twin-protocol.md
+for the full description.
 """
 
 from __future__ import annotations
@@ -52,17 +57,76 @@ def decode(line: str) -> dict[str, Any]:
     return msg
 
 
+def _error_fields(exc: BaseException) -> dict[str, Any]:
+    return {"status": "error", "message": f"{type(exc).__name__}: {exc}", "hours": [],
+            "clamped": {}}
+
+
+def _simulate_one(
+    simulate: Callable[[dict[str, Any]], dict[str, Any]], request: Any
+) -> dict[str, Any]:
+    """One result answer; an exception inside ``simulate`` becomes an "error" result."""
+    if not isinstance(request, dict):
+        return {"op": "result", "id": None, "status": "error",
+                "message": f"request must be an object, got {type(request).__name__}",
+                "hours": [], "clamped": {}}
+    try:
+        fields = simulate(request)
+    except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
+        fields = _error_fields(exc)
+    return {"op": "result", "id": request.get("id"), **fields}
+
+
+def _answer_batch(
+    msg: dict[str, Any],
+    simulate: Callable[[dict[str, Any]], dict[str, Any]],
+    simulate_batch: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None,
+) -> dict[str, Any]:
+    """The "results" answer to a simulate_batch message.
+
+    With ``simulate_batch`` the whole batch is computed in one call; if that
+    call raises or returns the wrong number of results, every request is
+    answered on its own by ``simulate`` instead, so one bad request never
+    costs the other runs of its batch their results.
+    """
+    requests = msg.get("requests")
+    if not isinstance(requests, list):
+        return {"op": "error",
+                "message": f"simulate_batch field 'requests' must be a list, got "
+                           f"{type(requests).__name__}"}
+    if simulate_batch is not None and all(isinstance(r, dict) for r in requests):
+        try:
+            fields = simulate_batch(requests)
+        except Exception as exc:  # noqa: BLE001 - falls back to one request at a time
+            print(f"simulate_batch failed ({type(exc).__name__}: {exc}); answering the "
+                  "batch one request at a time", file=sys.stderr, flush=True)
+            fields = None
+        if fields is not None and len(fields) == len(requests):
+            return {"op": "results", "results": [
+                {"op": "result", "id": r.get("id"), **f}
+                for r, f in zip(requests, fields, strict=True)
+            ]}
+    return {"op": "results", "results": [_simulate_one(simulate, r) for r in requests]}
+
+
 def serve_forever(
     hello: Callable[[], dict[str, Any]],
     simulate: Callable[[dict[str, Any]], dict[str, Any]],
     stdin: IO[str] | None = None,
     stdout: IO[str] | None = None,
+    *,
+    simulate_batch: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
 ) -> int:
     """Answer protocol requests until shutdown or end of input; return an exit code.
 
     ``hello()`` returns the hello answer's fields; ``simulate(request)`` returns
     the result's fields (status, message, hours, clamped). An exception inside
     ``simulate`` becomes an "error" result for that request, not a dead worker.
+    ``simulate_batch(requests)``, optional, returns one such fields object per
+    request, in order (a vectorised twin computes a batch at once); without it
+    a "simulate_batch" message is answered by calling ``simulate`` per request,
+    so every twin served here accepts batches (whether the caller sends any
+    depends on the ``batch`` capability the hello advertises).
     """
     stdin = stdin or sys.stdin
     stdout = stdout or sys.stdout
@@ -78,16 +142,9 @@ def serve_forever(
         if op == "hello":
             answer = {"op": "hello", "ok": True, "protocol": PROTOCOL_VERSION, **hello()}
         elif op == "simulate":
-            try:
-                fields = simulate(msg)
-            except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
-                fields = {
-                    "status": "error",
-                    "message": f"{type(exc).__name__}: {exc}",
-                    "hours": [],
-                    "clamped": {},
-                }
-            answer = {"op": "result", "id": msg.get("id"), **fields}
+            answer = _simulate_one(simulate, msg)
+        elif op == "simulate_batch":
+            answer = _answer_batch(msg, simulate, simulate_batch)
         elif op == "shutdown":
             stdout.write(encode({"op": "bye"}))
             stdout.flush()
@@ -156,6 +213,8 @@ def check_hello(
     caps = msg.get("capabilities", {})
     if not isinstance(caps, dict):
         raise ProtocolError(f"hello field 'capabilities' must be an object, got {caps!r}")
+    # "batch" is not filled in (a hello without it reads as before); callers
+    # use caps.get("batch", 1).
     caps = {"save_restore": False, "max_hours": None, **caps}
     if not isinstance(caps["save_restore"], bool):
         raise ProtocolError("capability 'save_restore' must be true or false")
@@ -163,7 +222,32 @@ def check_hello(
         isinstance(caps["max_hours"], int) and caps["max_hours"] >= 1
     ):
         raise ProtocolError("capability 'max_hours' must be a positive integer or absent")
+    batch = caps.get("batch", 1)
+    if not (isinstance(batch, int) and not isinstance(batch, bool) and batch >= 1):
+        raise ProtocolError(
+            f"capability 'batch' must be a positive integer (runs per simulate_batch "
+            f"message) or absent, got {batch!r}"
+        )
     return {**msg, "capabilities": caps, "declared_units": declared}
+
+
+def check_results(msg: dict[str, Any], n: int) -> list[Any]:
+    """Validate a simulate_batch answer's envelope; return its ``n`` result objects.
+
+    Each result is then checked on its own with ``check_result`` (so one bad
+    result does not condemn the others).
+    """
+    if msg.get("op") != "results":
+        raise ProtocolError(
+            f"expected op 'results' (answer to simulate_batch), got {msg.get('op')!r}: "
+            f"{msg.get('message', '')}"
+        )
+    results = msg.get("results")
+    if not isinstance(results, list):
+        raise ProtocolError(f"field 'results' must be a list, got {type(results).__name__}")
+    if len(results) != n:
+        raise ProtocolError(f"{len(results)} results for a batch of {n} requests")
+    return results
 
 
 @dataclass
@@ -194,6 +278,8 @@ def check_result(
     {feature: [given, used]}. Values are returned in ``columns`` order, NaN for
     a column the twin did not report.
     """
+    if not isinstance(msg, dict):
+        raise ProtocolError(f"a result must be an object, got {type(msg).__name__}")
     if msg.get("op") != "result":
         raise ProtocolError(
             f"expected op 'result', got {msg.get('op')!r}: {msg.get('message', '')}"
