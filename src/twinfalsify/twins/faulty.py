@@ -39,7 +39,7 @@ the whole batch answer, the other faults spoil only their own result.
 
 Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
 times around the work), so tests can check parallelism from the twins' own
-timestamps.
+timestamps; an answer given inside a simulate_batch of n runs adds ``batch=<n>``.
 """
 
 from __future__ import annotations
@@ -101,9 +101,13 @@ class _RawFault(Exception):
         self.mode = mode
 
 
-def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Namespace
-            ) -> tuple[dict[str, Any], str]:
-    """The result answer to one simulate request and its mode; crash/hang happen here."""
+def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Namespace,
+            batch: int = 0) -> tuple[dict[str, Any], str]:
+    """The result answer to one simulate request and its mode; crash/hang happen here.
+
+    batch: the size of the simulate_batch message it came in (0: a plain
+    simulate); stamped into the message as ``batch=<n>`` so tests can see it.
+    """
     out = sys.stdout
     seed = int(msg["seed"])
     mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
@@ -151,6 +155,8 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
         answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
         answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
     stamp = f"pid={os.getpid()} start={t0:.6f} end={time.time():.6f}"
+    if batch:
+        stamp += f" batch={batch}"
     answer["message"] = f"{answer['message']} {stamp}".strip()
     return answer, mode
 
@@ -209,7 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             results, raw = [], None
             for request in msg["requests"]:
                 try:
-                    answer, mode = _answer(request, modes, args)
+                    answer, mode = _answer(request, modes, args, len(msg["requests"]))
                 except _RawFault as fault:
                     raw = raw or fault.mode
                     continue
