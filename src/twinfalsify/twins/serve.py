@@ -56,24 +56,29 @@ def _parse(request: dict[str, Any]) -> tuple[list[float], np.ndarray, int, int]:
     return [float(x0[f]) for f in FEATURES], doses, hours, seed
 
 
-def _fields(features: np.ndarray, status: Any, message: Any, clamped: Any,
+def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
             hours: int) -> dict[str, Any]:
-    """One run of a SimResult -> the result fields (status, message, hours, clamped)."""
+    """One run -> the result fields (status, message, hours, clamped).
+
+    rows: the run's finite leading hours (values in FEATURES order); a twin
+    status outside TWIN_STATUSES (or "timeout", which only the caller may
+    give) and "ok" with fewer than ``hours`` finite hours become "error".
+    """
     status = str(status)
     message = str(message or "")
-    done = []
-    for row in features[:hours]:
-        if not np.isfinite(row).all():
-            break
-        done.append(dict(zip(FEATURES, row.tolist(), strict=True)))
     if status not in TWIN_STATUSES or status == "timeout":
         message = f"twin returned status {status!r}: {message}"
         status = "error"
-    if status == "ok" and len(done) < hours:
+    if status == "ok" and len(rows) < hours:
         status = "error"
-        message = f"twin status ok but hour {len(done) + 1} has non-finite values"
-    clamped = json.loads(clamped) if isinstance(clamped, str) else dict(clamped or {})
-    return {"status": status, "message": message, "hours": done, "clamped": clamped}
+        message = f"twin status ok but hour {len(rows) + 1} has non-finite values"
+    if isinstance(clamped, str):
+        clamped = {} if clamped == "{}" else json.loads(clamped)
+    else:
+        clamped = dict(clamped or {})
+    return {"status": status, "message": message,
+            "hours": [dict(zip(FEATURES, row, strict=True)) for row in rows],
+            "clamped": clamped}
 
 
 def _simulate_parsed(twin: Twin, parsed: list[tuple[list[float], np.ndarray, int, int]]
@@ -87,7 +92,10 @@ def _simulate_parsed(twin: Twin, parsed: list[tuple[list[float], np.ndarray, int
     if res.features.shape != (len(parsed), hours, len(FEATURES)):
         raise ValueError(f"twin returned features of shape {res.features.shape}, expected "
                          f"{(len(parsed), hours, len(FEATURES))}")
-    return [_fields(res.features[k], res.status[k], res.message[k], res.clamped[k], hours)
+    # hours completed = the leading hours whose every feature is finite
+    done = np.cumprod(np.isfinite(res.features).all(axis=2), axis=1).sum(axis=1)
+    values = res.features.tolist()  # Python floats, once for the whole batch
+    return [_fields(values[k][: done[k]], res.status[k], res.message[k], res.clamped[k], hours)
             for k in range(len(parsed))]
 
 
