@@ -150,6 +150,17 @@ class FittedTwin:
         return np.column_stack([np.ones(len(x)), x, g_iv(doses[:, 0]), g_v(doses[:, 1])])
 
     def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
+        def predict(design: np.ndarray, coef: np.ndarray) -> np.ndarray:
+            # design @ coef summed term by term in a fixed order: BLAS may
+            # split and order a matrix product's sums differently with the
+            # number of rows, so a run's numbers could change in the last bits
+            # with its batch; this sum is the same for a row in any batch (the
+            # Twin interface: results do not depend on how runs are batched).
+            pred = design[:, :1] * coef[0]
+            for j in range(1, design.shape[1]):
+                pred = pred + design[:, j : j + 1] * coef[j]
+            return pred
+
         n, hours, _ = doses.shape
         cur = x0[list(FEATURES)].to_numpy(float).copy()
         cols = [FEATURES.index(f) for f in PHYSIOLOGY]
@@ -157,12 +168,12 @@ class FittedTwin:
         out = np.empty((n, hours, len(FEATURES)))
         for s in range(hours):
             if s == 0:
-                pred = (
-                    self._design(x0[list(self.inputs)].to_numpy(float), doses[:, 0, :])
-                    @ self.coef_first
+                pred = predict(
+                    self._design(x0[list(self.inputs)].to_numpy(float), doses[:, 0, :]),
+                    self.coef_first,
                 )
             else:
-                pred = self._design(cur, doses[:, s, :]) @ self.coef_next
+                pred = predict(self._design(cur, doses[:, s, :]), self.coef_next)
             if self.residual_noise:
                 eps = noise.normal(
                     noise.combine(

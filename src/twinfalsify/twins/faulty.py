@@ -25,13 +25,21 @@ equals R). The first matching mode wins. Per-run modes:
     error          status error with a message
     slow           sleep --delay seconds, then answer normally
     clamp          clamp HR to at most 110 and report the clamp
+    batch_short    in a simulate_batch answer, leave this run's result out (the
+                   answer then has too few results); a plain simulate is answered
+                   normally
 Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 ``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2),
 ``no_hello`` (exit at once).
 
+``--batch N`` advertises ``capabilities.batch: N`` and answers
+``simulate_batch`` messages run by run with the same modes: ``crash`` and
+``hang`` kill or stall the whole batch, ``garbage`` and ``malformed`` replace
+the whole batch answer, the other faults spoil only their own result.
+
 Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
 times around the work), so tests can check parallelism from the twins' own
-timestamps.
+timestamps; an answer given inside a simulate_batch of n runs adds ``batch=<n>``.
 """
 
 from __future__ import annotations
@@ -50,6 +58,7 @@ from twinfalsify.twins.protocol import PROTOCOL_VERSION, ProtocolError, decode, 
 RUN_MODES = (
     "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
     "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
+    "batch_short",
 )
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello")
 
@@ -84,6 +93,74 @@ def _parse_modes(specs: Sequence[str]) -> list[tuple[str, str]]:
     return out
 
 
+class _RawFault(Exception):
+    """The answer stream itself is to be spoiled (mode garbage or malformed)."""
+
+    def __init__(self, mode: str) -> None:
+        super().__init__(mode)
+        self.mode = mode
+
+
+def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Namespace,
+            batch: int = 0) -> tuple[dict[str, Any], str]:
+    """The result answer to one simulate request and its mode; crash/hang happen here.
+
+    batch: the size of the simulate_batch message it came in (0: a plain
+    simulate); stamped into the message as ``batch=<n>`` so tests can see it.
+    """
+    out = sys.stdout
+    seed = int(msg["seed"])
+    mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
+    t0 = time.time()
+    x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
+    hours = expected(x0, doses[:hours_asked], seed)
+    answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
+                              "message": "", "hours": hours, "clamped": {}}
+    if mode == "crash_once":
+        if args.state_dir is None:
+            raise SystemExit("faulty: crash_once needs --state-dir")
+        marker = args.state_dir / f"seed-{seed}"
+        if not marker.exists():
+            marker.touch()
+            mode = "crash"
+    if mode == "crash":
+        print(f"faulty: crashing on seed {seed}", file=sys.stderr, flush=True)
+        out.write('{"op": "result", "id": ')  # half a line, then die
+        out.flush()
+        os._exit(3)
+    if mode == "hang":
+        print(f"faulty: hanging on seed {seed}", file=sys.stderr, flush=True)
+        time.sleep(3600)
+    if mode in ("garbage", "malformed"):
+        raise _RawFault(mode)
+    if mode == "slow":
+        time.sleep(args.delay)
+    if mode == "wrong_id":
+        answer["id"] = f"{msg['id']}-other"
+    elif mode == "wrong_features":
+        answer["hours"] = [{("heart_rate" if k == "HR" else k): v for k, v in h.items()}
+                           for h in hours]
+    elif mode == "fewer_hours":
+        answer["hours"] = hours[:-1]
+    elif mode == "non_numeric":
+        answer["hours"] = [{**h, "HR": "fast"} for h in hours]
+    elif mode == "irreversible" and args.irreversible_hour <= hours_asked:
+        answer.update(status="irreversible", hours=hours[: args.irreversible_hour - 1],
+                      message=f"irreversible state during hour {args.irreversible_hour}")
+    elif mode == "init_failed":
+        answer.update(status="init_failed", hours=[], message="patient rejected")
+    elif mode == "error":
+        answer.update(status="error", hours=[], message="engine error")
+    elif mode == "clamp" and float(x0["HR"]) > 110:
+        answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
+        answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
+    stamp = f"pid={os.getpid()} start={t0:.6f} end={time.time():.6f}"
+    if batch:
+        stamp += f" batch={batch}"
+    answer["message"] = f"{answer['message']} {stamp}".strip()
+    return answer, mode
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="twinfalsify.twins.faulty", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -92,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--irreversible-hour", type=int, default=2)
     parser.add_argument("--state-dir", type=Path, help="marker files for crash_once")
     parser.add_argument("--max-hours", type=int, default=None)
+    parser.add_argument("--batch", type=int, default=None,
+                        help="advertise capabilities.batch = N (runs per simulate_batch)")
     args = parser.parse_args(argv)
     modes = _parse_modes(args.mode)
     twin_modes = {m for m, _ in modes if m in TWIN_MODES}
@@ -126,66 +205,47 @@ def main(argv: Sequence[str] | None = None) -> int:
             caps: dict[str, Any] = {"save_restore": False}
             if args.max_hours is not None:
                 caps["max_hours"] = args.max_hours
+            if args.batch is not None:
+                caps["batch"] = args.batch
             send({"op": "hello", "ok": True, "name": "faulty", "version": "1",
                   "protocol": 2 if "bad_protocol" in twin_modes else PROTOCOL_VERSION,
                   "features": feats, "capabilities": caps})
             continue
+        if msg["op"] == "simulate_batch":
+            results, raw = [], None
+            for request in msg["requests"]:
+                try:
+                    answer, mode = _answer(request, modes, args, len(msg["requests"]))
+                except _RawFault as fault:
+                    raw = raw or fault.mode
+                    continue
+                if mode != "batch_short":
+                    results.append(answer)
+            batch_answer = {"op": "results", "results": results}
+            if raw == "garbage":
+                out.write("this is not JSON, it is a log line on stdout\n")
+                out.flush()
+            elif raw == "malformed":
+                out.write(encode(batch_answer)[:40] + "\n")
+                out.flush()
+            else:
+                send(batch_answer)
+            continue
         if msg["op"] != "simulate":
             send({"op": "error", "message": f"unknown op {msg['op']!r}"})
             continue
-        seed = int(msg["seed"])
-        mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
-        t0 = time.time()
-        x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
-        hours = expected(x0, doses[:hours_asked], seed)
-        answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
-                                  "message": "", "hours": hours, "clamped": {}}
-        if mode == "crash_once":
-            if args.state_dir is None:
-                raise SystemExit("faulty: crash_once needs --state-dir")
-            marker = args.state_dir / f"seed-{seed}"
-            if not marker.exists():
-                marker.touch()
-                mode = "crash"
-        if mode == "crash":
-            print(f"faulty: crashing on seed {seed}", file=sys.stderr, flush=True)
-            out.write('{"op": "result", "id": ')  # half a line, then die
-            out.flush()
-            os._exit(3)
-        if mode == "hang":
-            print(f"faulty: hanging on seed {seed}", file=sys.stderr, flush=True)
-            time.sleep(3600)
-        if mode == "garbage":
-            out.write("this is not JSON, it is a log line on stdout\n")
+        try:
+            answer, _ = _answer(msg, modes, args)
+        except _RawFault as fault:
+            if fault.mode == "garbage":
+                out.write("this is not JSON, it is a log line on stdout\n")
+            else:
+                good = {"op": "result", "id": msg["id"], "status": "ok", "message": "",
+                        "hours": expected(msg["x0"], msg["doses"][: int(msg["hours"])],
+                                          int(msg["seed"])), "clamped": {}}
+                out.write(encode(good)[:40] + "\n")
             out.flush()
             continue
-        if mode == "malformed":
-            out.write(encode(answer)[:40] + "\n")
-            out.flush()
-            continue
-        if mode == "slow":
-            time.sleep(args.delay)
-        if mode == "wrong_id":
-            answer["id"] = f"{msg['id']}-other"
-        elif mode == "wrong_features":
-            answer["hours"] = [{("heart_rate" if k == "HR" else k): v for k, v in h.items()}
-                               for h in hours]
-        elif mode == "fewer_hours":
-            answer["hours"] = hours[:-1]
-        elif mode == "non_numeric":
-            answer["hours"] = [{**h, "HR": "fast"} for h in hours]
-        elif mode == "irreversible" and args.irreversible_hour <= hours_asked:
-            answer.update(status="irreversible", hours=hours[: args.irreversible_hour - 1],
-                          message=f"irreversible state during hour {args.irreversible_hour}")
-        elif mode == "init_failed":
-            answer.update(status="init_failed", hours=[], message="patient rejected")
-        elif mode == "error":
-            answer.update(status="error", hours=[], message="engine error")
-        elif mode == "clamp" and float(x0["HR"]) > 110:
-            answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
-            answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
-        stamp = f"pid={os.getpid()} start={t0:.6f} end={time.time():.6f}"
-        answer["message"] = f"{answer['message']} {stamp}".strip()
         send(answer)
     return 0
 

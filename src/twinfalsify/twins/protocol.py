@@ -5,18 +5,23 @@ One JSON object per line in each direction; logs go to stderr, never stdout.
     -> {"op": "hello", "protocol": 1}
     <- {"op": "hello", "ok": true, "name": str, "version": str, "protocol": 1,
         "features": [{"name": str, "unit": str}, ...],
-        "capabilities": {"save_restore": bool, "max_hours": int}}
+        "capabilities": {"save_restore": bool, "max_hours": int, "batch": int}}
     -> {"op": "simulate", "id": str, "x0": {feature: value, ...},
         "doses": [[iv_mL_per_h, vaso_ug_per_kg_min], ...], "hours": t, "seed": int}
     <- {"op": "result", "id": str, "status": "ok"|"init_failed"|"irreversible"|"error",
         "message": str, "hours": [{feature: value, ...}, ...],   # completed hours 1..s
         "clamped": {feature: [given, used], ...}}
+    -> {"op": "simulate_batch", "requests": [<simulate request>, ...]}   # optional
+    <- {"op": "results", "results": [<result answer>, ...]}             # same order
     -> {"op": "shutdown"}
     <- {"op": "bye"}
 
 ``hours`` holds every hour that completed before a failure, so prefix nodes of
 a failed run stay usable. The caller adds "timeout" when a run exceeds its time
-limit. See docs/twin-protocol.md for the full description.
+limit. ``simulate_batch`` is an optional capability within version 1: the
+caller sends it only to a twin whose hello advertises ``capabilities.batch``
+> 1 (``serve_forever`` answers it for every twin). See docs/twin-protocol.md
+for the full description.
 """
 
 from __future__ import annotations
@@ -52,17 +57,76 @@ def decode(line: str) -> dict[str, Any]:
     return msg
 
 
+def _error_fields(exc: BaseException) -> dict[str, Any]:
+    return {"status": "error", "message": f"{type(exc).__name__}: {exc}", "hours": [],
+            "clamped": {}}
+
+
+def _simulate_one(
+    simulate: Callable[[dict[str, Any]], dict[str, Any]], request: Any
+) -> dict[str, Any]:
+    """One result answer; an exception inside ``simulate`` becomes an "error" result."""
+    if not isinstance(request, dict):
+        return {"op": "result", "id": None, "status": "error",
+                "message": f"request must be an object, got {type(request).__name__}",
+                "hours": [], "clamped": {}}
+    try:
+        fields = simulate(request)
+    except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
+        fields = _error_fields(exc)
+    return {"op": "result", "id": request.get("id"), **fields}
+
+
+def _answer_batch(
+    msg: dict[str, Any],
+    simulate: Callable[[dict[str, Any]], dict[str, Any]],
+    simulate_batch: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None,
+) -> dict[str, Any]:
+    """The "results" answer to a simulate_batch message.
+
+    With ``simulate_batch`` the whole batch is computed in one call; if that
+    call raises or returns the wrong number of results, every request is
+    answered on its own by ``simulate`` instead, so one bad request never
+    costs the other runs of its batch their results.
+    """
+    requests = msg.get("requests")
+    if not isinstance(requests, list):
+        return {"op": "error",
+                "message": f"simulate_batch field 'requests' must be a list, got "
+                           f"{type(requests).__name__}"}
+    if simulate_batch is not None and all(isinstance(r, dict) for r in requests):
+        try:
+            fields = simulate_batch(requests)
+        except Exception as exc:  # noqa: BLE001 - falls back to one request at a time
+            print(f"simulate_batch failed ({type(exc).__name__}: {exc}); answering the "
+                  "batch one request at a time", file=sys.stderr, flush=True)
+            fields = None
+        if fields is not None and len(fields) == len(requests):
+            return {"op": "results", "results": [
+                {"op": "result", "id": r.get("id"), **f}
+                for r, f in zip(requests, fields, strict=True)
+            ]}
+    return {"op": "results", "results": [_simulate_one(simulate, r) for r in requests]}
+
+
 def serve_forever(
     hello: Callable[[], dict[str, Any]],
     simulate: Callable[[dict[str, Any]], dict[str, Any]],
     stdin: IO[str] | None = None,
     stdout: IO[str] | None = None,
+    *,
+    simulate_batch: Callable[[list[dict[str, Any]]], list[dict[str, Any]]] | None = None,
 ) -> int:
     """Answer protocol requests until shutdown or end of input; return an exit code.
 
     ``hello()`` returns the hello answer's fields; ``simulate(request)`` returns
     the result's fields (status, message, hours, clamped). An exception inside
     ``simulate`` becomes an "error" result for that request, not a dead worker.
+    ``simulate_batch(requests)``, optional, returns one such fields object per
+    request, in order (a vectorised twin computes a batch at once); without it
+    a "simulate_batch" message is answered by calling ``simulate`` per request,
+    so every twin served here accepts batches (whether the caller sends any
+    depends on the ``batch`` capability the hello advertises).
     """
     stdin = stdin or sys.stdin
     stdout = stdout or sys.stdout
@@ -78,16 +142,9 @@ def serve_forever(
         if op == "hello":
             answer = {"op": "hello", "ok": True, "protocol": PROTOCOL_VERSION, **hello()}
         elif op == "simulate":
-            try:
-                fields = simulate(msg)
-            except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
-                fields = {
-                    "status": "error",
-                    "message": f"{type(exc).__name__}: {exc}",
-                    "hours": [],
-                    "clamped": {},
-                }
-            answer = {"op": "result", "id": msg.get("id"), **fields}
+            answer = _simulate_one(simulate, msg)
+        elif op == "simulate_batch":
+            answer = _answer_batch(msg, simulate, simulate_batch)
         elif op == "shutdown":
             stdout.write(encode({"op": "bye"}))
             stdout.flush()
@@ -156,6 +213,8 @@ def check_hello(
     caps = msg.get("capabilities", {})
     if not isinstance(caps, dict):
         raise ProtocolError(f"hello field 'capabilities' must be an object, got {caps!r}")
+    # "batch" is not filled in (a hello without it reads as before); callers
+    # use caps.get("batch", 1).
     caps = {"save_restore": False, "max_hours": None, **caps}
     if not isinstance(caps["save_restore"], bool):
         raise ProtocolError("capability 'save_restore' must be true or false")
@@ -163,7 +222,106 @@ def check_hello(
         isinstance(caps["max_hours"], int) and caps["max_hours"] >= 1
     ):
         raise ProtocolError("capability 'max_hours' must be a positive integer or absent")
+    batch = caps.get("batch", 1)
+    if not (isinstance(batch, int) and not isinstance(batch, bool) and batch >= 1):
+        raise ProtocolError(
+            f"capability 'batch' must be a positive integer (runs per simulate_batch "
+            f"message) or absent, got {batch!r}"
+        )
     return {**msg, "capabilities": caps, "declared_units": declared}
+
+
+def check_results(msg: dict[str, Any], n: int) -> list[Any]:
+    """Validate a simulate_batch answer's envelope; return its ``n`` result objects.
+
+    Each result is then checked on its own with ``check_result`` (so one bad
+    result does not condemn the others).
+    """
+    if msg.get("op") != "results":
+        raise ProtocolError(
+            f"expected op 'results' (answer to simulate_batch), got {msg.get('op')!r}: "
+            f"{msg.get('message', '')}"
+        )
+    results = msg.get("results")
+    if not isinstance(results, list):
+        raise ProtocolError(f"field 'results' must be a list, got {type(results).__name__}")
+    if len(results) != n:
+        raise ProtocolError(f"{len(results)} results for a batch of {n} requests")
+    return results
+
+
+_LAYOUTS: dict[tuple, tuple[np.ndarray, np.ndarray] | None] = {}
+
+
+def _fast_values(
+    rows: list[Any], required: Sequence[str], declared: Collection[str], columns: Sequence[str]
+) -> np.ndarray | None:
+    """Hour values in ``columns`` order when every rule of check_result holds, else None.
+
+    The common case at C speed (a batch of thousands of runs is checked
+    value by value otherwise): every hour an object with the same keys, in
+    the same order, all declared, every required one present, every value a
+    finite int or float (not bool, which is an int subclass). None sends the
+    caller to the checking loop, which names the first problem.
+    """
+    if not rows:
+        return np.empty((0, len(columns)))
+    first = rows[0]
+    if type(first) is not dict:
+        return None
+    keys = tuple(first)
+    cache_key = (keys, tuple(required), tuple(declared), tuple(columns))
+    layout = _LAYOUTS.get(cache_key, False)
+    if layout is False:
+        ok = set(keys) <= set(declared) and set(required) <= set(keys)
+        index = {name: j for j, name in enumerate(columns)}
+        src = [j for j, k in enumerate(keys) if k in index]
+        layout = (np.array(src, dtype=int), np.array([index[keys[j]] for j in src], dtype=int)
+                  ) if ok else None
+        if len(_LAYOUTS) < 64:  # a twin uses one or two key orders; bound it anyway
+            _LAYOUTS[cache_key] = layout
+    if layout is None:
+        return None
+    if any(type(r) is not dict or tuple(r) != keys for r in rows):
+        return None
+    flat = [v for r in rows for v in r.values()]
+    if not set(map(type, flat)) <= {float, int}:
+        return None
+    try:
+        arr = np.array(flat, dtype=float).reshape(len(rows), len(keys))
+    except OverflowError:
+        return None
+    if not np.isfinite(arr).all():
+        return None
+    values = np.full((len(rows), len(columns)), np.nan)
+    values[:, layout[1]] = arr[:, layout[0]]
+    return values
+
+
+def _checked_values(
+    rows: list[Any], required: Sequence[str], declared: Collection[str], columns: Sequence[str]
+) -> np.ndarray:
+    """Hour values in ``columns`` order, checked one by one; raises naming the first problem."""
+    index = {name: j for j, name in enumerate(columns)}
+    values = np.full((len(rows), len(columns)), np.nan)
+    declared_set = set(declared)
+    for h, row in enumerate(rows, start=1):
+        if not isinstance(row, dict):
+            raise ProtocolError(f"hour {h} must be an object of feature values")
+        unknown = sorted(set(row) - declared_set)
+        if unknown:
+            raise ProtocolError(f"hour {h} has unknown feature(s) {', '.join(unknown)}")
+        missing = [name for name in required if name not in row]
+        if missing:
+            raise ProtocolError(f"hour {h} lacks feature(s) {', '.join(missing)}")
+        for name, value in row.items():
+            if not _is_number(value) or not math.isfinite(value):
+                raise ProtocolError(
+                    f"hour {h} feature {name} is not a finite number: {value!r}"
+                )
+            if name in index:
+                values[h - 1, index[name]] = float(value)
+    return values
 
 
 @dataclass
@@ -194,6 +352,8 @@ def check_result(
     {feature: [given, used]}. Values are returned in ``columns`` order, NaN for
     a column the twin did not report.
     """
+    if not isinstance(msg, dict):
+        raise ProtocolError(f"a result must be an object, got {type(msg).__name__}")
     if msg.get("op") != "result":
         raise ProtocolError(
             f"expected op 'result', got {msg.get('op')!r}: {msg.get('message', '')}"
@@ -218,25 +378,9 @@ def check_result(
             f"status ok but only {len(rows)} of {hours} hours returned "
             "(a twin that stops early must report init_failed, irreversible or error)"
         )
-    index = {name: j for j, name in enumerate(columns)}
-    values = np.full((len(rows), len(columns)), np.nan)
-    declared_set = set(declared)
-    for h, row in enumerate(rows, start=1):
-        if not isinstance(row, dict):
-            raise ProtocolError(f"hour {h} must be an object of feature values")
-        unknown = sorted(set(row) - declared_set)
-        if unknown:
-            raise ProtocolError(f"hour {h} has unknown feature(s) {', '.join(unknown)}")
-        missing = [name for name in required if name not in row]
-        if missing:
-            raise ProtocolError(f"hour {h} lacks feature(s) {', '.join(missing)}")
-        for name, value in row.items():
-            if not _is_number(value) or not math.isfinite(value):
-                raise ProtocolError(
-                    f"hour {h} feature {name} is not a finite number: {value!r}"
-                )
-            if name in index:
-                values[h - 1, index[name]] = float(value)
+    values = _fast_values(rows, required, declared, columns)
+    if values is None:
+        values = _checked_values(rows, required, declared, columns)
     clamped = msg.get("clamped", {})
     if not isinstance(clamped, dict) or not all(
         isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)
@@ -245,4 +389,5 @@ def check_result(
         raise ProtocolError(
             f"field 'clamped' must be an object {{feature: [given, used]}}, got {clamped!r}"
         )
-    return CheckedResult(status, message, values, json.dumps(clamped, sort_keys=True))
+    return CheckedResult(status, message, values,
+                         json.dumps(clamped, sort_keys=True) if clamped else "{}")

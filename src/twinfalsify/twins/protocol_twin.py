@@ -2,7 +2,8 @@
 
 The command speaks the twin protocol v1 (docs/twin-protocol.md); runs go
 through ``twins.runner.simulate_via_protocol`` (worker pool, timeouts,
-restarts, retries, one status per run).
+restarts, retries, one status per run). ``batch_size`` caps the runs per
+``simulate_batch`` message for a twin that advertises batches.
 """
 
 from __future__ import annotations
@@ -17,7 +18,12 @@ import pandas as pd
 
 from twinfalsify.schema import FEATURES
 from twinfalsify.twins.base import SimResult
-from twinfalsify.twins.runner import _Pool, resolve_command, simulate_via_protocol
+from twinfalsify.twins.runner import (
+    DEFAULT_BATCH_SIZE,
+    _Pool,
+    resolve_command,
+    simulate_via_protocol,
+)
 
 
 class ProtocolTwin:
@@ -33,12 +39,14 @@ class ProtocolTwin:
         retries: int = 2,
         env: Mapping[str, str] | None = None,
         progress: bool = True,
+        batch_size: int = DEFAULT_BATCH_SIZE,
     ) -> None:
         self.name = name
         self.command = list(command)
         self.workers, self.timeout_s, self.retries = workers, timeout_s, retries
         self.env = dict(env) if env else None
         self.progress = progress
+        self.batch_size = batch_size
 
     def hello(self) -> dict[str, Any]:
         """Start one worker, return its (validated) hello answer, shut it down."""
@@ -59,4 +67,5 @@ class ProtocolTwin:
         return simulate_via_protocol(
             self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
             retries=self.retries, progress=self.progress, env=self.env,
+            batch_size=self.batch_size,
         )

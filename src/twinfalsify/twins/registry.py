@@ -107,7 +107,9 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
     """A builtin twin run as ``python -m twinfalsify.twins.serve`` subprocesses (ProtocolTwin).
 
     spec: the builtin spec plus ``protocol: true`` and the runner options
-    ``workers`` (processes), ``timeout_s`` (per run, default 60 s), ``retries``.
+    ``workers`` (processes), ``timeout_s`` (per run, default 60 s), ``retries``,
+    ``batch_size`` (most runs per simulate_batch message, default 500; the
+    served twin accepts up to serve.BATCH_MAX).
     context: path of the study's twin_context.json (or its folder): the served
     process builds its twin from it, so it must be a file, not a dict. The
     served twin computes exactly what the in-process one does (builtin twins
@@ -123,12 +125,14 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
     path = Path(context).resolve()
     if not path.exists():
         raise ContractError(f"twin context {path} does not exist")
-    inner = {k: v for k, v in spec.items() if k not in RUNNER_KEYS}
+    inner = {k: v for k, v in spec.items() if k not in (*RUNNER_KEYS, "batch_size")}
     command = [
         sys.executable, "-m", "twinfalsify.twins.serve", name,
         "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
     ]  # fmt: skip
     opts = _runner_options(spec, 60.0)
+    if "batch_size" in spec:
+        opts["batch_size"] = int(spec["batch_size"])
     # The served process must import this very library (scripts run it from src/
     # without installing it).
     pythonpath = os.pathsep.join(p for p in (str(_SRC), os.environ.get("PYTHONPATH")) if p)

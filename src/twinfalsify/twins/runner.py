@@ -15,6 +15,15 @@ by seed (one seed = one X_0 draw) and each group goes to one worker, ordered
 lexicographically by dose sequence, so a twin with state save/restore sees
 shared dose prefixes consecutively and can branch them.
 
+Batching: a twin whose hello advertises ``capabilities.batch`` > 1 gets
+``simulate_batch`` messages of up to min(batch, ``batch_size``) runs, taken
+in the same order (whole seed groups, dose order inside each), so a fast
+vectorised twin is not throttled by one round trip per run. The time limit
+of a batch is ``timeout_s`` x its length; if the worker dies, hangs or
+answers garbage during a batch, it is restarted and the batch's runs are
+retried one by one with plain ``simulate`` requests, so every run still gets
+its own status and message exactly as without batching.
+
 The protocol is described in docs/twin-protocol.md.
 """
 
@@ -44,6 +53,7 @@ from twinfalsify.twins.protocol import (
     ProtocolError,
     check_hello,
     check_result,
+    check_results,
     decode,
     encode,
 )
@@ -53,6 +63,9 @@ STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): star
 # (interpreter, engine libraries) is not simulation and must not eat the run's limit
 SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
 STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
+DEFAULT_BATCH_SIZE = 500  # runs per simulate_batch message (when the twin allows batches):
+# large enough that the per-message round trip (~ms) is negligible per run, small enough
+# that a batch's JSON (~1 kB per run) and a retry after a failed batch stay cheap
 _UNITS = {f.name: f.unit for f in schema.FEATURE_TABLE}
 
 
@@ -335,8 +348,13 @@ class _Pool:
         timeout_s: float,
         retries: int,
         features: Sequence[str],
+        batch_size: int = DEFAULT_BATCH_SIZE,
     ) -> None:
         self.command, self.env = command, env
+        self.batch_size = batch_size
+        # Runs a thread takes from the queue at a time: 1 until a hello says
+        # how large a batch the twin accepts (every worker runs the same command).
+        self.take = 1
         self.x0, self.doses, self.seeds, self.hours = x0, doses, seeds, hours
         self.timeout_s, self.retries, self.required = timeout_s, retries, tuple(features)
         self.startup_timeout_s = max(timeout_s, STARTUP_TIMEOUT_S)
@@ -400,6 +418,8 @@ class _Pool:
                 f"allows at most {max_hours}"
             )
         worker.hello = hello
+        with self.lock:
+            self.take = max(1, min(hello["capabilities"].get("batch", 1), self.batch_size))
         return worker
 
     def _drop_worker(self, slot: int) -> None:
@@ -418,6 +438,17 @@ class _Pool:
         with self.lock:
             self.counts[status] += 1
 
+    def _request(self, i: int, request_id: str) -> dict[str, Any]:
+        hours = int(self.hours[i])
+        return {
+            "op": "simulate",
+            "id": request_id,
+            "x0": dict(zip(FEATURES, self.x0[i].tolist(), strict=True)),
+            "doses": self.doses[i, :hours].tolist(),
+            "hours": hours,
+            "seed": int(self.seeds[i]),
+        }
+
     def _run_one(self, slot: int, i: int) -> None:
         hours = int(self.hours[i])
         attempts = self.retries + 1
@@ -428,15 +459,7 @@ class _Pool:
             request_id = f"{i}.{attempt}"
             try:
                 worker = self.workers.get(slot) or self._start_worker(slot)
-                request = {
-                    "op": "simulate",
-                    "id": request_id,
-                    "x0": dict(zip(FEATURES, map(float, self.x0[i]), strict=True)),
-                    "doses": self.doses[i, :hours].tolist(),
-                    "hours": hours,
-                    "seed": int(self.seeds[i]),
-                }
-                answer = worker.ask(request, self.timeout_s)
+                answer = worker.ask(self._request(i, request_id), self.timeout_s)
                 checked = check_result(
                     answer, request_id, hours, self.required,
                     worker.hello["declared_units"], FEATURES,
@@ -467,17 +490,82 @@ class _Pool:
             i, last_status, f"{last_message} (failed {attempts} attempt(s))", None
         )
 
+    def _run_batch(self, slot: int, worker: _Worker, idx: np.ndarray) -> None:
+        """Runs ``idx`` in one simulate_batch message; failed ones one by one.
+
+        A batch that cannot be trusted as a whole (worker died, hung, or the
+        answer's envelope is broken) costs a restart and every run is retried
+        alone, with the usual attempts; a batch attempt never counts against
+        a run (the culprit is unknown). Within a well-formed answer, a result
+        that breaks the rules is retried alone (and gets exactly the error
+        message a plain request gets); valid results are kept.
+        """
+        ids = [f"{i}.0" for i in idx]
+        redo: list[int] = []
+        try:
+            answer = worker.ask(
+                {"op": "simulate_batch",
+                 "requests": [self._request(int(i), r) for i, r in zip(idx, ids, strict=True)]},
+                self.timeout_s * len(idx),
+            )
+            results = check_results(answer, len(idx))
+        except (_WorkerTimeout, _WorkerDied, ProtocolError) as exc:
+            if isinstance(exc, _WorkerDied):
+                self.workers.pop(slot, None)
+            else:
+                self._drop_worker(slot)
+            what = {_WorkerTimeout: f"no answer within {self.timeout_s * len(idx):g} s",
+                    _WorkerDied: str(exc)}.get(type(exc), f"malformed answer: {exc}")
+            print(f"[twin] batch of {len(idx)} runs failed ({what}); worker restarted, "
+                  "retrying its runs one by one", file=sys.stderr, flush=True)
+            redo = [int(i) for i in idx]
+        else:
+            declared = worker.hello["declared_units"]
+            for i, request_id, result in zip(idx, ids, results, strict=True):
+                i = int(i)
+                try:
+                    checked = check_result(result, request_id, int(self.hours[i]),
+                                           self.required, declared, FEATURES)
+                except ProtocolError:
+                    redo.append(i)
+                    continue
+                if self.stop.is_set() and self.error is not None:
+                    return
+                self._record(i, checked.status, checked.message, checked.values,
+                             checked.clamped)
+        for i in redo:
+            if self.stop.is_set():
+                return
+            self._run_one(slot, i)
+
+    def _run_runs(self, slot: int, runs: np.ndarray) -> None:
+        """Runs in the given order: batches when the twin allows them, else one by one."""
+        pos = 0
+        while pos < len(runs) and not self.stop.is_set():
+            worker = self.workers.get(slot)
+            size = 1
+            if worker is not None:  # (a worker is (re)started by a plain run)
+                cap = worker.hello["capabilities"].get("batch", 1)
+                size = min(cap, self.batch_size, len(runs) - pos)
+            if size <= 1:
+                self._run_one(slot, int(runs[pos]))
+            else:
+                self._run_batch(slot, worker, runs[pos : pos + size])
+            pos += size
+
     def thread_main(self, slot: int) -> None:
         try:
             while not self.stop.is_set():
                 with self.lock:
                     if not self.tasks:
                         break
-                    group = self.tasks.popleft()
-                for i in group:
-                    if self.stop.is_set():
-                        break
-                    self._run_one(slot, int(i))
+                    # Whole seed groups, in plan order, up to one batch's worth of runs.
+                    chunk = [self.tasks.popleft()]
+                    taken = len(chunk[0])
+                    while self.tasks and taken < self.take:
+                        chunk.append(self.tasks.popleft())
+                        taken += len(chunk[-1])
+                self._run_runs(slot, np.concatenate(chunk))
         except BaseException as exc:  # noqa: BLE001 - re-raised by the caller
             with self.lock:
                 if self.error is None:
@@ -510,6 +598,7 @@ def simulate_via_protocol(
     progress: bool = True,
     env: Mapping[str, str] | None = None,
     features: Sequence[str] = FEATURES,
+    batch_size: int = DEFAULT_BATCH_SIZE,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -526,6 +615,10 @@ def simulate_via_protocol(
     protocol (message names the problem; not retried). Hours completed before
     a failure are kept; NaN after. Raises FileNotFoundError for a command that
     does not exist and ContractError for a twin whose hello is unusable.
+
+    batch_size: most runs per simulate_batch message, used only when the
+    twin's hello advertises ``capabilities.batch`` > 1 (then a message holds
+    min(batch, batch_size) runs; 1 = never batch). Results do not depend on it.
     """
     if workers < 1:
         raise ContractError(f"workers must be >= 1, got {workers}")
@@ -533,6 +626,9 @@ def simulate_via_protocol(
         raise ContractError(f"retries must be >= 0, got {retries}")
     if not timeout_s > 0:
         raise ContractError(f"timeout_s must be > 0, got {timeout_s}")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int | np.integer) \
+            or batch_size < 1:
+        raise ContractError(f"batch_size must be an integer >= 1, got {batch_size!r}")
     full_env = {**os.environ, **{str(k): str(v) for k, v in env.items()}} if env else None
     cmd = resolve_command(command, full_env)
     x0_values, doses, seeds, hours = _validate_inputs(x0, doses, seeds, features)
@@ -540,7 +636,8 @@ def simulate_via_protocol(
     if n == 0:
         return SimResult(empty_features(0, t), np.full(0, "", dtype=object))
 
-    pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features)
+    pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
+                 int(batch_size))
     groups = plan_groups(seeds, doses)
     pool.tasks.extend(groups)
     n_threads = min(workers, len(groups))

@@ -4,9 +4,13 @@
 
 builds the twin with ``twinfalsify.twins.registry.make_twin(name, spec,
 context_dir)`` and answers protocol v1 requests (docs/twin-protocol.md) on
-stdin/stdout until "shutdown" or end of input. Each request is simulated as a
-batch of one run; builtin twins key their noise by (seed, dose prefix), so the
-numbers are the same as in a vectorised in-process call.
+stdin/stdout until "shutdown" or end of input. The hello advertises
+``capabilities.batch`` = BATCH_MAX: a ``simulate_batch`` message is answered
+with ONE vectorised ``twin.simulate`` call per group of requests of equal
+length (``batch_handler``), a plain ``simulate`` as a batch of one run.
+Builtin twins key their noise by (seed, dose prefix) and compute every run's
+numbers independently of the others in its batch, so the numbers are the
+same bits as in one vectorised in-process call, however runs are batched.
 """
 
 from __future__ import annotations
@@ -26,16 +30,135 @@ from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES
 from twinfalsify.twins.base import Twin
 from twinfalsify.twins.protocol import serve_forever
 
+BATCH_MAX = 1000  # runs per simulate_batch message a served builtin twin accepts
+
+
+def _parse(request: dict[str, Any]) -> tuple[list[float], np.ndarray, int, int]:
+    """(x0 values in FEATURES order, doses (hours, 2), hours, seed) of a simulate request.
+
+    Raises ValueError naming the field and the problem.
+    """
+    x0 = request.get("x0")
+    if not isinstance(x0, dict):
+        raise ValueError("request field 'x0' must be an object {feature: value}")
+    missing = [f for f in FEATURES if f not in x0]
+    if missing:
+        raise ValueError(f"request x0 lacks feature(s) {', '.join(missing)}")
+    hours = request.get("hours")
+    doses = np.asarray(request.get("doses"), dtype=float)
+    if not isinstance(hours, int) or hours < 1:
+        raise ValueError(f"request field 'hours' must be a positive integer, got {hours!r}")
+    if doses.shape != (hours, 2):
+        raise ValueError(f"request doses must be {hours} pairs [iv, vaso]; got {doses.shape}")
+    seed = request.get("seed")
+    if not isinstance(seed, int) or not 0 <= seed < 2**64:
+        raise ValueError(f"request field 'seed' must be an integer in [0, 2^64), got {seed!r}")
+    return [float(x0[f]) for f in FEATURES], doses, hours, seed
+
+
+def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
+            hours: int) -> dict[str, Any]:
+    """One run -> the result fields (status, message, hours, clamped).
+
+    rows: the run's finite leading hours (values in FEATURES order); a twin
+    status outside TWIN_STATUSES (or "timeout", which only the caller may
+    give) and "ok" with fewer than ``hours`` finite hours become "error".
+    """
+    status = str(status)
+    message = str(message or "")
+    if status not in TWIN_STATUSES or status == "timeout":
+        message = f"twin returned status {status!r}: {message}"
+        status = "error"
+    if status == "ok" and len(rows) < hours:
+        status = "error"
+        message = f"twin status ok but hour {len(rows) + 1} has non-finite values"
+    if isinstance(clamped, str):
+        clamped = {} if clamped == "{}" else json.loads(clamped)
+    else:
+        clamped = dict(clamped or {})
+    return {"status": status, "message": message,
+            "hours": [dict(zip(FEATURES, row, strict=True)) for row in rows],
+            "clamped": clamped}
+
+
+def _simulate_parsed(twin: Twin, parsed: list[tuple[list[float], np.ndarray, int, int]]
+                     ) -> list[dict[str, Any]]:
+    """One vectorised ``twin.simulate`` over requests of equal length -> result fields."""
+    hours = parsed[0][2]
+    frame = pd.DataFrame([p[0] for p in parsed], columns=list(FEATURES))
+    doses = np.stack([p[1] for p in parsed])
+    seeds = np.array([p[3] for p in parsed], dtype=np.uint64)
+    res = twin.simulate(frame, doses, seeds)
+    if res.features.shape != (len(parsed), hours, len(FEATURES)):
+        raise ValueError(f"twin returned features of shape {res.features.shape}, expected "
+                         f"{(len(parsed), hours, len(FEATURES))}")
+    # hours completed = the leading hours whose every feature is finite
+    done = np.cumprod(np.isfinite(res.features).all(axis=2), axis=1).sum(axis=1)
+    values = res.features.tolist()  # Python floats, once for the whole batch
+    return [_fields(values[k][: done[k]], res.status[k], res.message[k], res.clamped[k], hours)
+            for k in range(len(parsed))]
+
+
+def batch_handler(twin: Twin) -> Callable[[list[dict[str, Any]]], list[dict[str, Any]]]:
+    """The ``simulate_batch`` callable for ``serve_forever`` around an in-process Twin.
+
+    Requests are grouped by ``hours`` (one ``twin.simulate`` per group, since a
+    Twin takes one dose array of shape (n, hours, 2)); results come back in
+    request order. A request that does not parse gets its own "error" result;
+    if the vectorised call of a group raises, that group's requests are
+    simulated one at a time so each gets its own outcome.
+    """
+
+    def simulate_batch(requests: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        out: list[dict[str, Any] | None] = [None] * len(requests)
+        groups: dict[int, list[int]] = {}
+        parsed: dict[int, tuple[list[float], np.ndarray, int, int]] = {}
+        for k, request in enumerate(requests):
+            try:
+                parsed[k] = _parse(request)
+            except Exception as exc:  # noqa: BLE001 - reported as this run's error
+                out[k] = {"status": "error", "message": f"{type(exc).__name__}: {exc}",
+                          "hours": [], "clamped": {}}
+                continue
+            groups.setdefault(parsed[k][2], []).append(k)
+        for members in groups.values():
+            try:
+                fields = _simulate_parsed(twin, [parsed[k] for k in members])
+            except Exception as exc:  # noqa: BLE001 - retried one run at a time below
+                print(f"vectorised batch failed ({type(exc).__name__}: {exc}); "
+                      "simulating its runs one at a time", file=sys.stderr, flush=True)
+                fields = []
+                for k in members:
+                    try:
+                        fields.extend(_simulate_parsed(twin, [parsed[k]]))
+                    except Exception as one:  # noqa: BLE001 - this run's error
+                        fields.append({"status": "error",
+                                       "message": f"{type(one).__name__}: {one}",
+                                       "hours": [], "clamped": {}})
+            for k, f in zip(members, fields, strict=True):
+                out[k] = f
+        return out  # type: ignore[return-value]  # every slot filled above
+
+    return simulate_batch
+
 
 def handlers(
-    twin: Twin, *, version: str = __version__, max_hours: int | None = T_MAX
+    twin: Twin, *, version: str = __version__, max_hours: int | None = T_MAX,
+    batch: int | None = None,
 ) -> tuple[Callable[[], dict[str, Any]], Callable[[dict[str, Any]], dict[str, Any]]]:
-    """The (hello, simulate) callables for ``serve_forever`` around an in-process Twin."""
+    """The (hello, simulate) callables for ``serve_forever`` around an in-process Twin.
+
+    batch: the ``capabilities.batch`` the hello advertises (None: not
+    advertised, so callers send one run per message); pass
+    ``simulate_batch=batch_handler(twin)`` to ``serve_forever`` with it.
+    """
 
     def hello() -> dict[str, Any]:
         caps: dict[str, Any] = {"save_restore": False}
         if max_hours is not None:
             caps["max_hours"] = max_hours
+        if batch is not None:
+            caps["batch"] = batch
         return {
             "name": twin.name,
             "version": version,
@@ -44,40 +167,7 @@ def handlers(
         }
 
     def simulate(request: dict[str, Any]) -> dict[str, Any]:
-        x0 = request.get("x0")
-        if not isinstance(x0, dict):
-            raise ValueError("request field 'x0' must be an object {feature: value}")
-        missing = [f for f in FEATURES if f not in x0]
-        if missing:
-            raise ValueError(f"request x0 lacks feature(s) {', '.join(missing)}")
-        hours = request.get("hours")
-        doses = np.asarray(request.get("doses"), dtype=float)
-        if not isinstance(hours, int) or hours < 1:
-            raise ValueError(f"request field 'hours' must be a positive integer, got {hours!r}")
-        if doses.shape != (hours, 2):
-            raise ValueError(f"request doses must be {hours} pairs [iv, vaso]; got {doses.shape}")
-        seed = request.get("seed")
-        if not isinstance(seed, int) or not 0 <= seed < 2**64:
-            raise ValueError(f"request field 'seed' must be an integer in [0, 2^64), got {seed!r}")
-        frame = pd.DataFrame([{f: float(x0[f]) for f in FEATURES}])
-        res = twin.simulate(frame, doses[None], np.array([seed], dtype=np.uint64))
-        status = str(res.status[0])
-        message = str(res.message[0] or "")
-        done = []
-        for h in range(hours):
-            row = res.features[0, h]
-            if not np.isfinite(row).all():
-                break
-            done.append(dict(zip(FEATURES, map(float, row), strict=True)))
-        if status not in TWIN_STATUSES or status == "timeout":
-            message = f"twin returned status {status!r}: {message}"
-            status = "error"
-        if status == "ok" and len(done) < hours:
-            status = "error"
-            message = f"twin status ok but hour {len(done) + 1} has non-finite values"
-        clamped = res.clamped[0]
-        clamped = json.loads(clamped) if isinstance(clamped, str) else dict(clamped or {})
-        return {"status": status, "message": message, "hours": done, "clamped": clamped}
+        return _simulate_parsed(twin, [_parse(request)])[0]
 
     return hello, simulate
 
@@ -104,8 +194,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from twinfalsify.twins.registry import make_twin
 
     twin = make_twin(args.name, spec, args.context)
-    print(f"serving twin {twin.name!r} (protocol v1)", file=sys.stderr, flush=True)
-    return serve_forever(*handlers(twin), stdout=protocol_out)
+    print(f"serving twin {twin.name!r} (protocol v1, batch {BATCH_MAX})", file=sys.stderr,
+          flush=True)
+    hello, simulate = handlers(twin, batch=BATCH_MAX)
+    return serve_forever(hello, simulate, stdout=protocol_out,
+                         simulate_batch=batch_handler(twin))
 
 
 if __name__ == "__main__":
