@@ -17,7 +17,8 @@ from twinfalsify.twins.base import Twin
 
 BUILTIN_KINDS = ("oracle", "biased", "fitted")
 KINDS = (*BUILTIN_KINDS, "command")
-RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env")  # how, not what, to run
+# how, not what, to run
+RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size")
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
@@ -100,6 +101,7 @@ def _runner_options(spec: dict[str, Any], timeout_s: float) -> dict[str, Any]:
         "timeout_s": float(spec.get("timeout_s", timeout_s)),
         "retries": int(spec.get("retries", 2)),
         "env": spec.get("env"),
+        "batch_size": int(spec.get("batch_size", 500)),
     }
 
 
@@ -125,14 +127,12 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
     path = Path(context).resolve()
     if not path.exists():
         raise ContractError(f"twin context {path} does not exist")
-    inner = {k: v for k, v in spec.items() if k not in (*RUNNER_KEYS, "batch_size")}
+    inner = {k: v for k, v in spec.items() if k not in RUNNER_KEYS}
     command = [
         sys.executable, "-m", "twinfalsify.twins.serve", name,
         "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
     ]  # fmt: skip
     opts = _runner_options(spec, 60.0)
-    if "batch_size" in spec:
-        opts["batch_size"] = int(spec["batch_size"])
     # The served process must import this very library (scripts run it from src/
     # without installing it).
     pythonpath = os.pathsep.join(p for p in (str(_SRC), os.environ.get("PYTHONPATH")) if p)
