@@ -86,8 +86,8 @@ def test_snakemake_refuses_bad_config_and_writes_nothing(case, tmp_path):
 
 @pytest.mark.slow
 def test_cohort_too_small_for_split_fails_in_rule_without_partial_output(tmp_path):
-    """A source of 3 stays leaves D0 empty: the split rule fails, leaving no d0/d file."""
-    cfg = edited_config({"source.synthetic.n_stays": 3})
+    """20 stays with a 1 % D0 leave D0 empty: the split rule fails, leaving no d0/d file."""
+    cfg = edited_config({"source.synthetic.n_stays": 20, "split.d0_fraction": 0.01})
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(cfg))
     done = run(tmp_path, config, "--cores", "1", timeout=300)
@@ -95,7 +95,7 @@ def test_cohort_too_small_for_split_fails_in_rule_without_partial_output(tmp_pat
     assert done.returncode != 0
     log = (tmp_path / "results" / "test" / "logs" / "split.log").read_text().strip()
     last = log.splitlines()[-1]
-    assert "ERROR: split: 3 stay(s) with d0_fraction 0.2 leave D0 with 0 stay(s)" in last
+    assert "ERROR: split: 20 stay(s) with d0_fraction 0.01 leave D0 with 0 stay(s)" in last
     assert "need at least one stay in each of D0 and D" in out
     r = tmp_path / "results" / "test"
     assert (r / "trajectories.parquet").exists()  # the step before it is kept (valid)

@@ -18,6 +18,7 @@ import os
 import signal
 import subprocess
 import time
+from base64 import urlsafe_b64encode
 from pathlib import Path
 
 import pytest
@@ -38,10 +39,20 @@ PROFILE = str(ROOT / "workflow" / "profiles" / "default")
 N_SHARDS = 4
 
 
-def _shards(r: Path) -> dict[str, tuple[int, int]]:
-    """Finished shard files with (inode, mtime_ns): a recomputed shard gets a new inode."""
+def _shards(work: Path, r: Path) -> dict[str, tuple[int, int]]:
+    """Finished shards with (inode, mtime_ns): a recomputed shard gets a new inode.
+
+    Finished = the file exists and Snakemake has closed its job: no incomplete marker
+    (.snakemake/incomplete/<urlsafe base64 of the output path>). A shard whose file was
+    renamed into place but whose job was killed before Snakemake closed it is incomplete,
+    and is rightly redone by --rerun-incomplete.
+    """
     out = {}
     for p in sorted((r / "twins" / "biased" / "shards").glob("*.parquet")):
+        rel = str(p.relative_to(work))
+        marker = work / ".snakemake" / "incomplete" / urlsafe_b64encode(rel.encode()).decode()
+        if marker.exists():
+            continue
         st = p.stat()
         out[p.name] = (st.st_ino, st.st_mtime_ns)
     return out
@@ -59,7 +70,7 @@ def _interrupt(work: Path, config: Path, sig: signal.Signals) -> dict[str, tuple
     )
     try:
         deadline = time.monotonic() + 300
-        while not _shards(r):
+        while not _shards(work, r):
             assert proc.poll() is None, "snakemake ended before any shard was written"
             assert time.monotonic() < deadline, "no shard after 300 s"
             time.sleep(0.05)
@@ -69,7 +80,7 @@ def _interrupt(work: Path, config: Path, sig: signal.Signals) -> dict[str, tuple
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    done = _shards(r)
+    done = _shards(work, r)
     assert 0 < len(done) < N_SHARDS, f"stopped with {len(done)} of {N_SHARDS} shards done"
     assert not (r / "twins" / "biased" / "results.parquet").exists()
     return done
@@ -92,7 +103,7 @@ def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path):
 
     resumed = run(work, config, "--workflow-profile", PROFILE)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    after = _shards(results_dir(work, config))
+    after = _shards(work, results_dir(work, config))
     assert len(after) == N_SHARDS
     for name, stat in before.items():
         assert after[name] == stat, f"finished shard {name} was recomputed"
