@@ -143,7 +143,7 @@ TRAJECTORY_CASES: dict[str, tuple[Callable[[pd.DataFrame], pd.DataFrame], list[s
     ),
     "duplicated_stay_rows": (
         lambda d: pd.concat([d, d.iloc[[5]]]),
-        ["duplicated (stay_id, t)", "more than once"],
+        ["duplicated (stay_id, t): stay_id 200002 has t = 0 more than once"],
     ),
     "fewer_hours_than_asked": (
         lambda d: d[~((d[STAY_ID] == d[STAY_ID].iloc[0]) & (d[TIME] == 4))],
@@ -151,7 +151,7 @@ TRAJECTORY_CASES: dict[str, tuple[Callable[[pd.DataFrame], pd.DataFrame], list[s
     ),
     "hour_out_of_range": (
         lambda d: _set(d, TIME, 9, row=4),
-        ["column t has values outside 0..4"],
+        ["column t has values outside 0..4: [9]"],
     ),
     "non_numeric_feature": (
         lambda d: _set(d, "Sodium", "140 mmol/L"),
