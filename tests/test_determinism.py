@@ -2,9 +2,10 @@
 
 Compared: two independent runs from scratch, one with --cores 1 and one with --cores 2
 (different job order and concurrency). The resumed runs of tests/test_resume.py are compared
-with the same --cores 1 run, and the Slurm run of tests/test_slurm.py with the --cores 2 run. "Identical" is checked twice: equal tables (every value, dtype and row order) and
-equal Parquet bytes: pyarrow writes no timestamp or host name into the file, so the bytes are
-equal too. The Slurm run is compared with the local run in tests/test_slurm.py.
+with the same --cores 1 run, and the Slurm run of tests/test_slurm.py with the --cores 2 run.
+"Identical" is checked twice: equal tables (every value, dtype and row order) and equal
+Parquet bytes: pyarrow writes no timestamp or host name into the file, so the bytes are
+equal too.
 """
 
 from __future__ import annotations
