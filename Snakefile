@@ -17,6 +17,7 @@ include: "workflow/rules/design.smk"
 include: "workflow/rules/twins.smk"
 include: "workflow/rules/tests.smk"
 include: "workflow/rules/outputs.smk"
+include: "workflow/rules/calibration.smk"
 
 
 rule all:

@@ -38,6 +38,7 @@ def main(sm):
         make_methods(cfg["methods"], int(sm.params.seed)),
         alpha=float(cfg.get("alpha", 0.05)),
         correction=cfg.get("correction", "holm"),
+        failed_runs=cfg.get("failed_runs", "conservative"),
     )
     untestable = int(((samples.n == 0) | (samples.nhat == 0)).sum())
     if untestable:

@@ -1,6 +1,6 @@
 """Rule twin_shard: simulate one shard of the prefix tree with one twin."""
 
-import json  # noqa: F401
+import json
 import sys
 from pathlib import Path
 
@@ -14,7 +14,12 @@ from twinfalsify.twins.registry import make_twin  # noqa: E402
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
-    twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
+    spec = json.loads(sm.params.spec)
+    if "workers" in spec:
+        # Snakemake gave this job sm.threads cores (fewer than asked when --cores is
+        # smaller): never run more twin processes than that.
+        spec["workers"] = max(1, min(int(spec["workers"]), int(sm.threads)))
+    twin = make_twin(sm.wildcards.twin, spec, sm.input.context)
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     runs = run_shard(
         twin, plan, int(sm.wildcards.shard), x0, ActionBins.from_json(read_json(sm.input.actions))

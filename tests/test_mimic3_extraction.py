@@ -18,24 +18,95 @@ from twinfalsify.sources.mimic3.cohort import _stays, suspected_infection
 from twinfalsify.sources.mimic3.tables import connect, find_table
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
-S1, S2 = 200001, 200002
+S1, S2, S12 = 200001, 200002, 200012
+STEPS = ["all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortality_documented",
+         "intake_documented", "not_withdrawn", "anchor", "stay_covers_window",
+         "weight_documented", "vitals_complete"]
 
 
 @pytest.fixture(scope="module")
 def cohort():
-    return extract_mimic3(FIX)
+    return extract_mimic3(FIX, anchor="intime")
+
+
+@pytest.fixture(scope="module")
+def cohort_fv():
+    return extract_mimic3(FIX, anchor="first_vitals")
 
 
 def test_consort_counts_each_step_excludes_one_stay(cohort):
     c = cohort.consort
-    assert list(c["step"]) == [
-        "all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortality_documented",
-        "intake_documented", "not_withdrawn", "stay_covers_window", "weight_documented",
-        "vitals_complete"]
-    # the fixture has 11 stays, 9 of them built to fail exactly one step each, in order
-    assert list(c["n_stays"]) == [11, 10, 9, 8, 7, 6, 5, 4, 3, 2]
-    assert list(c["n_excluded"]) == [0] + [1] * 9
+    assert list(c["step"]) == STEPS
+    # 13 stays; under anchor=intime the anchor step excludes nothing, and S12/S13 (vitals
+    # 1 h / 6 h late) join S4 at vitals_complete: hour [INTIME, INTIME + 1 h) has no vitals
+    assert list(c["n_stays"]) == [13, 12, 11, 10, 9, 8, 7, 7, 6, 5, 2]
+    assert list(c["n_excluded"]) == [0, 1, 1, 1, 1, 1, 1, 0, 1, 1, 3]
     assert sorted(cohort.trajectories[schema.STAY_ID].unique()) == [S1, S2]
+    assert (cohort.anchors["anchor_h"] == 0).all()
+    assert (cohort.anchors["t0"] == cohort.anchors["intime"]).all()
+
+
+def test_first_vitals_consort_each_step_excludes_one_stay(cohort_fv):
+    c = cohort_fv.consort
+    assert list(c["step"]) == STEPS
+    # S13 has no complete vital set in the first 6 ICU hours (anchor step); S12 is kept
+    assert list(c["n_stays"]) == [13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3]
+    assert list(c["n_excluded"]) == [0] + [1] * 10
+    assert sorted(cohort_fv.trajectories[schema.STAY_ID].unique()) == [S1, S2, S12]
+    a = cohort_fv.anchors.set_index(schema.STAY_ID)
+    assert a["anchor_h"].to_dict() == {S1: 0, S2: 0, S12: 1}
+    assert a.loc[S12, "t0"] == pd.Timestamp("2150-01-03 11:00:00")  # INTIME 10:00 + 1 h
+
+
+def test_first_vitals_late_stay_aligned_to_anchor(cohort_fv):
+    s = _stay(cohort_fv, S12)
+    # vitals charted at INTIME + 1:30, 2:30, ..., 5:30: anchor block [INTIME + 1 h, + 2 h),
+    # so t = 0..4 hold the values of hours 1..5 = the fixture's hour-0..4 values
+    assert s["HR"].tolist() == [80, 100, 90, 85, 95]
+    assert s["MeanBP"].tolist() == [80, 73, 77, 80, 82]
+    # 100.4 F at INTIME + 1:00 (t = 0) -> 38.0 C held 6 h; 37.0 C at INTIME + 4:30 (t = 3)
+    np.testing.assert_allclose(s["Temp_C"], [38.0, 38.0, 38.0, 37.0, 37.0], atol=1e-9)
+    # labs at INTIME - 1 h: blood gas held 8 h, still valid at the last block start (+5 h)
+    assert (s["Arterial_pH"] == 7.4).all() and (s["Potassium"] == 4.0).all()
+    # doses by hand, INTIME-relative hours -> anchor-relative t = hour - 1:
+    # NaCl bolus 100 mL at INTIME + 0:20 is in hour 0, before t = 0: not in the trajectory;
+    # NaCl 500 mL at 250 mL/h over INTIME + 0:30..2:30: hour 0 125 (dropped), hour 1 250
+    # (t = 0), hour 2 125 (t = 1); norepinephrine 0.2 ug/kg/min over 4:15..4:45: hour 4 (t = 3)
+    np.testing.assert_allclose(s["iv_fluid"], [250, 125, 0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(s["vasopressor"], [0, 0, 0, 0.2, 0], atol=1e-9)
+
+
+def test_first_vitals_leaves_intime_anchored_stays_unchanged(cohort, cohort_fv):
+    # S1, S2 have vitals in hour 0: anchor 0, so both anchors give identical rows (labs are
+    # complete, so 1-NN imputation, which depends on the cohort, touches nothing)
+    a = cohort.trajectories.set_index([schema.STAY_ID, "t"])
+    b = cohort_fv.trajectories.set_index([schema.STAY_ID, "t"]).loc[a.index]
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_anchor_window_bounds_the_search():
+    # S13's vitals start at INTIME + 6:30, in hour 6: outside the default 6 h window (hours
+    # 0..5), inside a 7 h window, where it is kept with t = 0 at INTIME + 6 h
+    res = extract_mimic3(FIX, anchor="first_vitals", anchor_window_h=7)
+    a = res.anchors.set_index(schema.STAY_ID)["anchor_h"]
+    assert a.to_dict() == {S1: 0, S2: 0, S12: 1, 200013: 6}
+    assert res.consort.set_index("step").loc["anchor", "n_excluded"] == 0
+    s = _stay(res, 200013)
+    assert s["HR"].tolist() == [80, 100, 90, 85, 95]
+    # its only fluid is the 100 mL bolus at INTIME + 0:20, long before t = 0
+    assert (s["iv_fluid"] == 0).all()
+
+
+def test_default_anchor_is_first_vitals(cohort_fv):
+    res = extract_mimic3(FIX)
+    pd.testing.assert_frame_equal(res.trajectories, cohort_fv.trajectories)
+
+
+def test_bad_anchor_is_named():
+    with pytest.raises(ContractError, match="anchor must be one of"):
+        extract_mimic3(FIX, anchor="first_hr")
+    with pytest.raises(ContractError, match="anchor_window_h"):
+        extract_mimic3(FIX, anchor="first_vitals", anchor_window_h=0)
 
 
 def test_onset_rules():
@@ -121,7 +192,7 @@ def test_lower_case_gz_and_parquet_give_same_result(tmp_path, cohort):
     # one table as Parquet (upper-case name), with the CSV removed
     pd.read_csv(FIX / "ICUSTAYS.csv", dtype=str).to_parquet(d / "ICUSTAYS.parquet")
     (d / "icustays.csv.gz").unlink()
-    res = extract_mimic3(d)
+    res = extract_mimic3(d, anchor="intime")
     pd.testing.assert_frame_equal(res.trajectories, cohort.trajectories)
     pd.testing.assert_frame_equal(res.consort, cohort.consort)
 

@@ -110,3 +110,49 @@ def test_norepinephrine_equivalent(system, item, rate, uom, expected):
         assert np.isnan(got)
     else:
         assert got == pytest.approx(expected, rel=1e-12)
+
+
+def _held(rows: dict[int, list[bool]]) -> pd.DataFrame:
+    """(icustay_id, t) frame of the six vitals: complete (1.0) or with HR missing (NaN)."""
+    idx, vals = [], []
+    for sid, complete in rows.items():
+        for k, ok in enumerate(complete):
+            idx.append((sid, k))
+            vals.append([1.0 if ok else np.nan] + [1.0] * (len(hourly.VITALS) - 1))
+    return pd.DataFrame(vals, index=pd.MultiIndex.from_tuples(idx, names=["icustay_id", "t"]),
+                        columns=list(hourly.VITALS))
+
+
+def test_first_complete_vitals_first_hour_within_window():
+    from twinfalsify.sources.mimic3.cohort import first_complete_vitals
+    held = _held({1: [True, False, True], 2: [False, False, True, True],
+                  3: [False, False, False, True], 4: [False] * 4})
+    got = first_complete_vitals(held, window_h=3)
+    # 1: hour 0; 2: hour 2 (the last allowed); 3: hour 3 is outside hours 0..2; 4: never
+    assert got.to_dict() == {1: 0, 2: 2}
+    assert first_complete_vitals(held, window_h=4).to_dict() == {1: 0, 2: 2, 3: 3}
+
+
+def test_realign_shifts_blocks_by_the_anchor():
+    from twinfalsify.sources.mimic3.cohort import realign
+    idx = pd.MultiIndex.from_product([[10, 20, 30], range(5)], names=["icustay_id", "t"])
+    f = pd.DataFrame({"v": np.arange(15.0)}, index=idx)  # v = 5 * stay_index + k
+    out = realign(f, pd.Series({10: 0, 20: 2}), t_max=2)
+    # stay 10: blocks 0..2 -> t 0..2; stay 20: blocks 2..4 -> t 0..2; stay 30: no anchor
+    assert out.index.tolist() == [(10, 0), (10, 1), (10, 2), (20, 0), (20, 1), (20, 2)]
+    assert out["v"].tolist() == [0, 1, 2, 7, 8, 9]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
+    rng = np.random.default_rng(seed)
+    # integer-valued columns and duplicated rows make many exact distance ties
+    x = rng.integers(0, 4, size=(300, 6)).astype(float) * [1, 10, 100, 1, 5, 0.1]
+    x[150:200] = x[100:150]
+    x[rng.random(x.shape) < 0.3] = np.nan
+    x[7] = np.nan  # a row with nothing observed stays NaN
+    for chunk, batch in ((10_000, 512), (120, 7)):
+        fast = hourly.knn_impute(x, chunk=chunk, batch=batch)
+        slow = hourly._knn_impute_direct(x, chunk=chunk)
+        np.testing.assert_array_equal(fast, slow)
+    assert np.isnan(fast[7]).all()

@@ -95,8 +95,9 @@ def twin_side(
     """(raw twin outcomes of entering ok runs, n_failed per hypothesis).
 
     A run whose path a_1:1 .. a_1:t has a failed node cannot be evaluated; it is
-    left out of the twin sample and counted in n_failed (runs failing B_0 are
-    not counted: they would not enter whatever the twin did).
+    left out of the twin sample and counted in n_failed, unless it could not
+    have entered whatever the twin did: X_0 outside B_0, or a completed hour
+    s (before the failure) outside B_s.
     """
     h_total = len(hyps)
     m = nodes.x0.shape[0]
@@ -127,7 +128,10 @@ def twin_side(
             b0 = b_pad[hs][:, 0][:, None]
             in_b0 = (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
             enter = in_b0 & ok_s.all(axis=1) & ~failed
-            n_failed[hs] = (failed & in_b0).sum(axis=1)
+            # A failed run whose completed hours already left B_1:s cannot enter
+            # whatever it would have done next: not counted as failed.
+            left_b = (on_path[..., None] & ~np.isnan(vals) & ~ok_s).any(axis=1)
+            n_failed[hs] = (failed & in_b0 & ~left_b).sum(axis=1)
             last = vals[np.arange(len(hs)), t_h[hs] - 1, :]  # (h, m)
             hh, ii = np.nonzero(enter)
             cuts = np.searchsorted(hh, np.arange(1, len(hs)))

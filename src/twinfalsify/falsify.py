@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from functools import partial
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from twinfalsify.inference.hoeffding import hoeffding_test
+from twinfalsify.inference import registry
+from twinfalsify.inference.failures import MODES as FAILED_RUN_MODES
+from twinfalsify.inference.failures import failure_pvalues
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.schema import ContractError
@@ -18,35 +19,14 @@ Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
 
 RESULT_COLUMNS = (
     "hyp_id", "kind", "outcome", "t", "side", "method", "n", "n_follow", "nhat", "n_failed",
-    "y_lo", "y_up", "q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat", "propensity",
+    "failed_runs", "y_lo", "y_up", "q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat", "propensity",
     "p_value", "rejected", "correction", "alpha",
 )  # fmt: skip
 
 
 def make_methods(spec: Mapping[str, Mapping[str, Any]], seed: int) -> dict[str, Method]:
-    """Config ``testing.methods: {name: {options}}`` -> callables.
-
-    Known: hoeffding (factor: 2 = paper's proposition, 4 = authors' code); the
-    statistics module adds bootstrap and the tighter exact methods.
-    """
-    methods: dict[str, Method] = {}
-    for name, opts in spec.items():
-        opts = dict(opts or {})
-        if name == "hoeffding":
-            methods[name] = partial(hoeffding_test, factor=float(opts.get("factor", 2.0)))
-        else:
-            methods[name] = _optional_method(name, opts, seed)
-    return methods
-
-
-def _optional_method(name: str, opts: dict[str, Any], seed: int) -> Method:
-    try:
-        from twinfalsify.inference import registry  # provided by the statistics module
-    except ImportError:
-        registry = None
-    if registry is None or name not in getattr(registry, "METHODS", {}):
-        raise ContractError(f"testing.methods: unknown method {name!r}")
-    return registry.make(name, opts, seed)
+    """Config ``testing.methods: {name: {options}}`` -> callables (see inference.registry)."""
+    return {name: registry.make(name, opts, seed) for name, opts in spec.items()}
 
 
 def run_tests(
@@ -57,25 +37,36 @@ def run_tests(
     *,
     alpha: float = 0.05,
     correction: str = "holm",
+    failed_runs: str = "conservative",
 ) -> pd.DataFrame:
     """Long results table: one row per (hypothesis, side, method).
+
+    failed_runs: how the n_failed twin runs per hypothesis count
+    (``inference.failures``): "conservative" = worst case over what they could
+    have produced (default), "drop" = left out (the paper's behaviour).
 
     The correction runs within each family = (method, kind): causal-bound and
     Manski hypotheses are two separate analyses (the paper's two columns), and
     both sides H_lo, H_up of every parameter set are in the family.
     """
+    if failed_runs not in FAILED_RUN_MODES:
+        raise ContractError(
+            f"testing.failed_runs: unknown mode {failed_runs!r}; choose one of "
+            f"{', '.join(FAILED_RUN_MODES)}"
+        )
     base = pd.DataFrame({
         "hyp_id": hyps["hyp_id"].to_numpy(), "kind": hyps["kind"].to_numpy(),
         "outcome": hyps["outcome"].to_numpy(), "t": hyps["t"].to_numpy(),
         "n": samples.n, "n_follow": samples.n_follow, "nhat": samples.nhat,
-        "n_failed": np.asarray(n_failed), "y_lo": samples.y_lo, "y_up": samples.y_up,
+        "n_failed": np.asarray(n_failed), "failed_runs": failed_runs,
+        "y_lo": samples.y_lo, "y_up": samples.y_up,
         "q_lo_hat": samples.q_lo_hat, "q_up_hat": samples.q_up_hat,
         "q_twin_hat": samples.q_twin_hat, "q_obs_hat": samples.q_obs_hat,
         "propensity": samples.propensity,
     })  # fmt: skip
     parts = []
     for name, method in methods.items():
-        p_lo, p_up = method(samples)
+        p_lo, p_up = failure_pvalues(method, samples, np.asarray(n_failed), failed_runs)
         for side, p in (("lo", p_lo), ("up", p_up)):
             part = base.copy()
             part.insert(4, "side", side)

@@ -65,3 +65,312 @@ def pvalue_boxen(
     fig.suptitle(title or f"{method} p-values, {kind} hypotheses")
     fig.tight_layout()
     return fig
+
+
+# -- shared helpers ----------------------------------------------------------------------------
+
+COLORS = {
+    "bound": "#4c72b0",  # observational bounds [Q_lo, Q_up]
+    "twin": "#dd8452",  # twin mean Q_twin
+    "naive": "#55a868",  # naive observational mean
+    "rejected": "#c44e52",
+    "kept": "#8c8c8c",
+}
+
+
+def apply_style() -> None:
+    """One look for every figure (seaborn theme from STYLE)."""
+    sns.set_theme(**STYLE)
+
+
+def unit_label(feature: str) -> str:
+    """'Glucose (mg/dL)' from the schema's units."""
+    from twinfalsify.schema import FEATURE_BY_NAME
+
+    f = FEATURE_BY_NAME.get(feature)
+    if f is None or f.unit in ("", "0/1"):
+        return feature
+    return f"{feature} ({f.unit})"
+
+
+def save_all(fig: plt.Figure, *paths: str | Path) -> None:
+    """Save one figure to several files (PNG and PDF), then close it."""
+    for p in paths:
+        path = Path(p)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
+        fig.savefig(tmp, dpi=200, bbox_inches="tight")
+        tmp.replace(path)
+    plt.close(fig)
+
+
+def describe_hypothesis(outcome: str, t: int, actions, bins) -> str:
+    """Short text: outcome at t, action codes and B-set codes (-1 = whole space)."""
+    a = "-".join(str(int(x)) for x in actions)
+    b = "all" if all(int(x) == -1 for x in bins) else "-".join(str(int(x)) for x in bins)
+    return f"{outcome}, t = {t}, a = {a}, B = {b}"
+
+
+# -- item 4: longitudinal bounds ---------------------------------------------------------------
+
+
+def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
+    """Qhat_twin_t and [Qhat_lo, Qhat_up] with Hoeffding intervals over t, next to the naive mean.
+
+    frame: summary.longitudinal_frame output (one row per prefix s = 1..t).
+    """
+    apply_style()
+    f = frame.sort_values("t")
+    t = f["t"].to_numpy(float)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.fill_between(t, f["q_lo_hat"] - f["r_bound"], f["q_up_hat"] + f["r_bound"],
+                    color=COLORS["bound"], alpha=0.12, lw=0,
+                    label="bounds with Hoeffding intervals")  # fmt: skip
+    ax.fill_between(t, f["q_lo_hat"], f["q_up_hat"], color=COLORS["bound"], alpha=0.3, lw=0,
+                    label=r"$[\hat Q_{lo}, \hat Q_{up}]$")  # fmt: skip
+    ax.errorbar(t - 0.06, f["q_twin_hat"], yerr=f["r_twin"], fmt="o-", color=COLORS["twin"],
+                capsize=3, label=r"twin $\hat Q_{twin}$")  # fmt: skip
+    ax.errorbar(t + 0.06, f["q_obs_hat"], yerr=f["r_obs"], fmt="s--", color=COLORS["naive"],
+                capsize=3, label="naive observational mean")  # fmt: skip
+    ax.set_xticks(t)
+    ax.set_xticklabels([f"{int(s)}\nn={n}, $\\hat n$={nh}" for s, n, nh in
+                        zip(f["t"], f["n"], f["nhat"], strict=True)], fontsize=8)  # fmt: skip
+    ax.set_xlabel("hour t (trajectories entering n, twin runs entering $\\hat n$)")
+    outcome = f["outcome"].iloc[0]
+    ax.set_ylabel(f"clipped {unit_label(outcome)}")
+    last = f.iloc[-1]
+    default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
+    ax.set_title(title or default, fontsize=10)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+# -- item 5: outcome histograms ----------------------------------------------------------------
+
+
+def outcome_histograms(cases: list[dict]) -> plt.Figure:
+    """Per case (summary.histogram_data): histogram of raw outcomes, observational followers vs
+    twin runs, with the Hoeffding intervals of the bounds and of Q_twin drawn below."""
+    if not cases:
+        raise ValueError("outcome_histograms: no case to draw")
+    apply_style()
+    fig, axes = plt.subplots(2, len(cases), figsize=(5.6 * len(cases), 5.2), squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1]}, sharex="col")  # fmt: skip
+    for j, c in enumerate(cases):
+        ax, bx = axes[0, j], axes[1, j]
+        vals = np.concatenate([c["obs"], c["twin"]])
+        edges = np.histogram_bin_edges(vals, bins=30) if len(vals) else np.linspace(0, 1, 31)
+        for key, lab, col in (("obs", "observational: A = a, X in B", COLORS["naive"]),
+                              ("twin", "twin: $X^{twin}$ in B", COLORS["twin"])):  # fmt: skip
+            v = c[key]
+            if len(v):
+                ax.hist(v, bins=edges, density=True, alpha=0.45, color=col,
+                        label=f"{lab} ({len(v)})")  # fmt: skip
+        for y in (c["y_lo"], c["y_up"]):
+            ax.axvline(y, color="k", ls=":", lw=1)
+        ax.set_ylabel("density")
+        state = "rejected" if c["rejected"] else "not rejected"
+        ax.set_title(f"{describe_hypothesis(c['outcome'], c['t'], c['actions'], c['bins'])}\n"
+                     f"{state}, min p = {c['p_min']:.2g}", fontsize=9)  # fmt: skip
+        ax.legend(fontsize=7)
+        lo, up = c["q_lo_hat"] - c["r_bound"], c["q_up_hat"] + c["r_bound"]
+        bx.plot([lo, up], [1, 1], color=COLORS["bound"], lw=6, solid_capstyle="butt",
+                label="$[Q_{lo}, Q_{up}]$ interval")  # fmt: skip
+        bx.plot([c["q_lo_hat"], c["q_up_hat"]], [1, 1], "|", color="k", ms=12)
+        bx.errorbar([c["q_twin_hat"]], [0], xerr=[[c["r_twin"]], [c["r_twin"]]], fmt="o",
+                    color=COLORS["twin"], capsize=4, label="$Q_{twin}$ interval")  # fmt: skip
+        bx.set_yticks([0, 1], ["$Q_{twin}$", "bounds"])
+        bx.set_ylim(-0.7, 1.7)
+        bx.set_xlabel(f"raw {unit_label(c['outcome'])} at t = {c['t']}")
+    fig.tight_layout()
+    return fig
+
+
+# -- item 6: sample sizes ----------------------------------------------------------------------
+
+
+def sample_size_histograms(results: pd.DataFrame, kind: str = "causal") -> plt.Figure:
+    """Histograms of n (observational, entering D) and nhat (twin runs entering) across
+    hypotheses, one panel per outcome; log-spaced bins (n + 1 so zeros show)."""
+    apply_style()
+    sub = results[results["kind"] == kind].drop_duplicates("hyp_id")
+    if sub.empty:
+        sub = results.drop_duplicates("hyp_id")
+        kind = "all"
+    outs = [o for o in OUTCOMES if o in set(sub["outcome"])]
+    ncol = min(5, len(outs))
+    nrow = int(np.ceil(len(outs) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(2.7 * ncol, 2.2 * nrow + 0.6), squeeze=False,
+                             sharex=True)  # fmt: skip
+    # log10(size + 1) on a linear axis: same picture as a log axis, without its costly ticks
+    top = np.log10(max(2.0, float(max(sub["n"].max(), sub["nhat"].max())) + 1))
+    edges = np.linspace(0.0, top, 20)
+    powers = np.arange(0, int(np.ceil(top)) + 1)
+    for ax, o in zip(axes.flat, outs, strict=False):
+        part = sub[sub["outcome"] == o]
+        ax.hist(np.log10(part["n"] + 1), bins=edges, alpha=0.5, color=COLORS["bound"],
+                label="n (data)")  # fmt: skip
+        ax.hist(np.log10(part["nhat"] + 1), bins=edges, alpha=0.5, color=COLORS["twin"],
+                label=r"$\hat n$ (twin)")  # fmt: skip
+        ax.set_xticks(powers, [f"$10^{p}$" for p in powers])
+        ax.set_title(o, fontsize=9)
+    for ax in axes.flat[len(outs) :]:
+        ax.set_visible(False)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("hypotheses")
+    for ax in axes[-1, :]:
+        ax.set_xlabel("sample size + 1 (trajectories)")
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle(f"Sample sizes per hypothesis ({kind})")
+    fig.tight_layout()
+    return fig
+
+
+# -- item 7: propensity vs n -------------------------------------------------------------------
+
+
+def propensity_scatter(results: pd.DataFrame) -> plt.Figure:
+    """P(A_1:t = a_1:t | X_0:N in B_0:N) against n, coloured by rejection (either side), one
+    panel per (method, kind). Low propensity = wide bounds = hard to reject."""
+    apply_style()
+    methods = list(pd.unique(results["method"]))
+    kinds = [k for k in ("causal", "manski") if k in set(results["kind"])]
+    size = (5.2 * len(kinds), 3.8 * len(methods))
+    fig, axes = plt.subplots(
+        len(methods), len(kinds), figsize=size, squeeze=False, sharex=True, sharey=True
+    )
+    for i, m in enumerate(methods):
+        for j, k in enumerate(kinds):
+            ax = axes[i, j]
+            part = results[(results["method"] == m) & (results["kind"] == k)]
+            per = part.groupby("hyp_id").agg(n=("n", "first"), p=("propensity", "first"),
+                                             rej=("rejected", "any"))  # fmt: skip
+            per = per[per["n"] > 0]
+            for rej, col, lab in ((False, COLORS["kept"], "not rejected"),
+                                  (True, COLORS["rejected"], "rejected")):  # fmt: skip
+                q = per[per["rej"] == rej]
+                ax.scatter(q["n"], q["p"], s=10 if not rej else 18, alpha=0.6, color=col,
+                           label=f"{lab} ({len(q)})", edgecolors="none")  # fmt: skip
+            ax.set_xscale("log")
+            ax.set_ylim(-0.02, 1.02)
+            ax.set_title(f"{m}, {k}", fontsize=10)
+            ax.set_xlabel("n (test-set trajectories entering)")
+            ax.set_ylabel("$P(A_{1:t} = a_{1:t} | X_{0:N} \\in B_{0:N})$")
+            ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+# -- item 8: sensitivity -----------------------------------------------------------------------
+
+
+def sensitivity_lines(sweep: pd.DataFrame) -> plt.Figure:
+    """Rejections against Delta (widening of [y_lo, y_up]), one panel per method, one line per
+    kind (total over outcomes) and thin lines per outcome. sweep columns: delta, method,
+    group, n_hypotheses, n_rejected, kind."""
+    need = {"delta", "method", "group", "n_hypotheses", "n_rejected"}
+    if need - set(sweep.columns):
+        raise ValueError(f"sensitivity_lines: missing columns {sorted(need - set(sweep.columns))}")
+    apply_style()
+    sweep = sweep if "kind" in sweep else sweep.assign(kind="causal")
+    methods = list(pd.unique(sweep["method"]))
+    fig, axes = plt.subplots(1, len(methods), figsize=(5 * len(methods), 3.8), squeeze=False,
+                             sharey=True)  # fmt: skip
+    palette = {"causal": COLORS["bound"], "manski": COLORS["twin"]}
+    for ax, m in zip(axes[0], methods, strict=True):
+        sub = sweep[sweep["method"] == m]
+        for k, part in sub.groupby("kind"):
+            for _, g in part.groupby("group"):
+                g = g.sort_values("delta")
+                ax.plot(g["delta"], g["n_rejected"], color=palette.get(k, "k"), lw=0.6, alpha=0.35)
+            tot = part.groupby("delta")["n_rejected"].sum()
+            ax.plot(tot.index, tot.to_numpy(), "o-", color=palette.get(k, "k"), lw=2, ms=4,
+                    label=f"{k}: total")  # fmt: skip
+        ax.set_title(m)
+        ax.set_xlabel(r"$\Delta$ ([y_lo, y_up] widened by factors $1 \mp \Delta/2$)")
+        ax.legend(fontsize=7)
+    axes[0, 0].set_ylabel("rejected hypotheses")
+    fig.tight_layout()
+    return fig
+
+
+# -- item 9: confounding -----------------------------------------------------------------------
+
+
+def confounding(frame: pd.DataFrame, outcome: str, show_action: int | None = None,
+                labels: dict[int, str] | None = None) -> plt.Figure:  # fmt: skip
+    """Left: outcome distribution among those who took one action vs everyone under it.
+    Right: per action, mean observed among takers vs mean if everyone took it.
+    frame: summary.confounding_frame output."""
+    apply_style()
+    labels = labels or {}
+    obs = frame[frame["which"] == "observed"]
+    counts = obs.groupby("action").size()
+    if show_action is None:  # the most common non-zero action shows the bias best
+        nz = counts.drop(index=0, errors="ignore")
+        show_action = int((nz if len(nz) else counts).idxmax())
+    elif show_action not in counts.index:
+        raise ValueError(
+            f"figures.confounding.action: action {show_action} was never taken at hour 1 "
+            f"(taken: {sorted(int(a) for a in counts.index)})"
+        )
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [1, 1.4]})
+    sel = frame[frame["action"] == show_action]
+    edges = np.histogram_bin_edges(sel["value"], bins=30)
+    for which, col, lab in (("observed", COLORS["naive"], "observed among those treated"),
+                            ("everyone", COLORS["bound"], "if everyone were treated")):  # fmt: skip
+        v = sel.loc[sel["which"] == which, "value"]
+        ax.hist(v, bins=edges, density=True, alpha=0.5, color=col, label=f"{lab} ({len(v)})")
+        ax.axvline(v.mean(), color=col, lw=2)
+    ax.set_xlabel(f"{unit_label(outcome)} at hour 1")
+    ax.set_ylabel("density")
+    ax.set_title(f"action {labels.get(show_action, show_action)} at hour 1", fontsize=10)
+    ax.legend(fontsize=7)
+    keep = counts[counts >= 20].index
+    means = frame[frame["action"].isin(keep)].groupby(["action", "which"])["value"].mean().unstack()
+    x = np.arange(len(means))
+    bx.scatter(x, means["observed"], color=COLORS["naive"], label="mean among those treated")
+    bx.scatter(x, means["everyone"], color=COLORS["bound"], marker="D",
+               label="mean if everyone were treated")  # fmt: skip
+    bx.vlines(x, means["observed"], means["everyone"], color="k", lw=0.8)
+    bx.set_xticks(x, [str(labels.get(int(a), a)) for a in means.index], rotation=60, fontsize=7)
+    bx.set_xlabel("action at hour 1 (IV bin, vasopressor bin); actions taken >= 20 times")
+    bx.set_ylabel(f"mean {unit_label(outcome)} at hour 1")
+    bx.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def pvalue_boxen_methods(
+    results: pd.DataFrame, kind: str = "causal", title: str | None = None
+) -> plt.Figure:
+    """pvalue_boxen for every method in the results, one row of (H_lo, H_up) panels each."""
+    methods = list(pd.unique(results["method"]))
+    if not methods:
+        raise ValueError("pvalue_boxen_methods: results have no rows")
+    apply_style()
+    order = [o for o in OUTCOMES if o in set(results["outcome"])]
+    fig, axes = plt.subplots(len(methods), 2, figsize=(11, 4.2 * len(methods)), squeeze=False,
+                             sharey="row")  # fmt: skip
+    for i, method in enumerate(methods):
+        sub = results[(results["method"] == method) & (results["kind"] == kind)].copy()
+        sub["neg_log10_p"] = -np.log10(np.clip(sub["p_value"].to_numpy(float), 1e-300, 1.0))
+        for ax, side in zip(axes[i], ("lo", "up"), strict=True):
+            part = sub[sub["side"] == side]
+            if len(part):
+                sns.boxenplot(data=part, x="outcome", y="neg_log10_p", order=order, ax=ax,
+                              color=COLORS["bound"], k_depth="trustworthy")  # fmt: skip
+                rej = part[part["rejected"]]
+                if len(rej):
+                    ax.axhline(-np.log10(rej["p_value"].max()), ls="--", color=COLORS["rejected"],
+                               lw=1, label=f"rejected after {part['correction'].iloc[0]}"
+                               f" ({len(rej)})")  # fmt: skip
+                    ax.legend(loc="upper right", fontsize=8)
+            ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
+            ax.set_ylabel(f"$-\\log_{{10}}\\ p_{{{side}}}$ (dimensionless)")
+            ax.set_title(f"{method}: $H_{{{side}}}$", fontsize=10)
+            ax.tick_params(axis="x", rotation=60)
+    fig.suptitle(title or f"p-values, {kind} hypotheses")
+    fig.tight_layout()
+    return fig

@@ -27,13 +27,36 @@ def twin_dir(twin="{twin}"):
 
 
 def all_outputs():
-    out = [f"{R}/tables/action_space.csv", f"{R}/design/report.csv"]
+    import os
+
+    out = [
+        f"{R}/tables/action_space.csv",
+        f"{R}/design/report.csv",
+        f"{R}/tables/action_space_grid.csv",
+        f"{R}/tables/action_space.tex",
+        f"{R}/summary.md",
+        f"{R}/summary.html",
+    ]
+    if config["source"]["kind"] == "synthetic":  # the truth is known only there
+        out += [f"{R}/figures/confounding.{ext}" for ext in ("png", "pdf")]
+    # the sensitivity sweep comes with the statistics module; include it once it is there
+    has_sweep = os.path.exists(
+        os.path.join(
+            workflow.basedir, "src", "twinfalsify", "inference", "sensitivity.py"
+        )
+    )
+    figures = ["pvalues", "longitudinal", "histograms", "sample_sizes", "propensity"]
+    figures += ["sensitivity"] if has_sweep else []
     for twin in TWINS:
         out += [
             f"{twin_dir(twin)}/results.parquet",
             f"{twin_dir(twin)}/tables/rejections.csv",
-            f"{twin_dir(twin)}/figures/pvalues.png",
-            f"{twin_dir(twin)}/figures/pvalues.pdf",
+            f"{twin_dir(twin)}/tables/rejections.tex",
+        ]
+        out += [
+            f"{twin_dir(twin)}/figures/{f}.{ext}"
+            for f in figures
+            for ext in ("png", "pdf")
         ]
     return out
 
@@ -61,8 +84,10 @@ def shard_threads(wildcards):
 
 
 def shard_mem_mb(wildcards, threads):
-    """Builtin twins hold the shard's node table in memory; Pulse needs ~110 MB per engine."""
-    if twin_spec(wildcards)["kind"] == "command":
+    """Builtin twins hold the shard's node table in memory; a twin served over the protocol
+    runs one process per worker (Pulse: ~110 MB per engine, plus headroom)."""
+    spec = twin_spec(wildcards)
+    if spec["kind"] == "command" or spec.get("protocol"):
         return 1000 + 250 * threads
     return 4000
 

@@ -37,7 +37,242 @@ rule figure_pvalues:
     resources:
         mem_mb=2000,
         runtime=5,
-    params:
-        method=lambda w: next(iter(config["testing"]["methods"])),
     script:
-        "../../scripts/figure_pvalues.py"
+        "../../scripts/figure_pvalues_methods.py"
+
+
+report: "../report/workflow.rst"
+
+
+# Everything summary.load_study_twin needs for one twin (wildcard {twin}).
+STUDY_TWIN_INPUTS = {
+    "d0": f"{R}/d0.parquet",
+    "d": f"{R}/d.parquet",
+    "actions": f"{R}/design/actions.json",
+    "bins": f"{R}/design/bins.json",
+    "hypotheses": f"{R}/design/hypotheses.parquet",
+    "counts": f"{R}/observational/counts.parquet",
+    "follow": f"{R}/observational/follow.parquet",
+    "plan": f"{R}/twin_plan.json",
+    "runs": f"{twin_dir()}/runs.parquet",
+    "results": f"{twin_dir()}/results.parquet",
+}
+
+
+rule table_rejections_tex:
+    input:
+        f"{twin_dir()}/tables/rejections.csv",
+    output:
+        report(
+            f"{twin_dir()}/tables/rejections.tex",
+            caption="../report/rejections_tex.rst",
+            category="Rejections",
+            subcategory="{twin}",
+        ),
+    log:
+        f"{LOGS}/twins/{{twin}}/table_rejections_tex.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    script:
+        "../../scripts/table_rejections_tex.py"
+
+
+rule table_action_space:
+    input:
+        f"{R}/tables/action_space.csv",
+    output:
+        csv=report(
+            f"{R}/tables/action_space_grid.csv",
+            caption="../report/action_space_grid.rst",
+            category="Design",
+        ),
+        tex=f"{R}/tables/action_space.tex",
+    log:
+        f"{LOGS}/table_action_space.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    script:
+        "../../scripts/table_action_space.py"
+
+
+rule figure_longitudinal:
+    input:
+        **STUDY_TWIN_INPUTS,
+    output:
+        png=report(
+            f"{twin_dir()}/figures/longitudinal.png",
+            caption="../report/longitudinal.rst",
+            category="Bounds over time",
+            subcategory="{twin}",
+        ),
+        pdf=f"{twin_dir()}/figures/longitudinal.pdf",
+        csv=f"{twin_dir()}/figures/longitudinal.csv",
+    log:
+        f"{LOGS}/twins/{{twin}}/figure_longitudinal.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        figures=canon(config.get("figures", {})),
+        testing=canon(config["testing"]),
+        quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
+    script:
+        "../../scripts/figure_longitudinal.py"
+
+
+rule figure_histograms:
+    input:
+        **STUDY_TWIN_INPUTS,
+    output:
+        png=report(
+            f"{twin_dir()}/figures/histograms.png",
+            caption="../report/histograms.rst",
+            category="Outcome histograms",
+            subcategory="{twin}",
+        ),
+        pdf=f"{twin_dir()}/figures/histograms.pdf",
+    log:
+        f"{LOGS}/twins/{{twin}}/figure_histograms.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        figures=canon(config.get("figures", {})),
+        testing=canon(config["testing"]),
+    script:
+        "../../scripts/figure_histograms.py"
+
+
+rule figure_sample_sizes:
+    input:
+        f"{twin_dir()}/results.parquet",
+    output:
+        png=report(
+            f"{twin_dir()}/figures/sample_sizes.png",
+            caption="../report/sample_sizes.rst",
+            category="Sample sizes",
+            subcategory="{twin}",
+        ),
+        pdf=f"{twin_dir()}/figures/sample_sizes.pdf",
+    log:
+        f"{LOGS}/twins/{{twin}}/figure_sample_sizes.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=5,
+    script:
+        "../../scripts/figure_sample_sizes.py"
+
+
+rule figure_propensity:
+    input:
+        f"{twin_dir()}/results.parquet",
+    output:
+        png=report(
+            f"{twin_dir()}/figures/propensity.png",
+            caption="../report/propensity.rst",
+            category="Sample sizes",
+            subcategory="{twin}",
+        ),
+        pdf=f"{twin_dir()}/figures/propensity.pdf",
+    log:
+        f"{LOGS}/twins/{{twin}}/figure_propensity.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=5,
+    script:
+        "../../scripts/figure_propensity.py"
+
+
+rule figure_sensitivity:
+    input:
+        **STUDY_TWIN_INPUTS,
+    output:
+        png=report(
+            f"{twin_dir()}/figures/sensitivity.png",
+            caption="../report/sensitivity.rst",
+            category="Sensitivity",
+            subcategory="{twin}",
+        ),
+        pdf=f"{twin_dir()}/figures/sensitivity.pdf",
+        csv=f"{twin_dir()}/tables/sensitivity.csv",
+    log:
+        f"{LOGS}/twins/{{twin}}/figure_sensitivity.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=6000,
+        runtime=30,
+    params:
+        figures=canon(config.get("figures", {})),
+        testing=canon(config["testing"]),
+        seed=config["seed"],
+    script:
+        "../../scripts/figure_sensitivity.py"
+
+
+rule figure_confounding:
+    input:
+        d=f"{R}/d.parquet",
+        actions=f"{R}/design/actions.json",
+    output:
+        png=report(
+            f"{R}/figures/confounding.png",
+            caption="../report/confounding.rst",
+            category="Design",
+        ),
+        pdf=f"{R}/figures/confounding.pdf",
+    log:
+        f"{LOGS}/figure_confounding.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        figures=canon(config.get("figures", {})),
+        source=canon(config["source"]),
+        seed=config["seed"],
+    script:
+        "../../scripts/figure_confounding.py"
+
+
+rule summary:
+    input:
+        d0=f"{R}/d0.parquet",
+        d=f"{R}/d.parquet",
+        hypotheses=f"{R}/design/hypotheses.parquet",
+        runs=[f"{twin_dir(t)}/runs.parquet" for t in TWINS],
+        results=[f"{twin_dir(t)}/results.parquet" for t in TWINS],
+    output:
+        md=f"{R}/summary.md",
+        html=report(
+            f"{R}/summary.html",
+            caption="../report/summary.rst",
+            category="Summary",
+        ),
+    log:
+        f"{LOGS}/summary.log",
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=5,
+    params:
+        study=STUDY,
+        twins=TWINS,
+    script:
+        "../../scripts/summary.py"

@@ -37,6 +37,7 @@ rule twin_shard:
         "twin_shards"
     conda:
         "../../envs/twinfalsify.yaml"
+    # twin processes of a protocol/command twin (workers) = cores the job uses
     threads: shard_threads
     resources:
         mem_mb=shard_mem_mb,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -112,37 +113,37 @@ class HypothesisSamples:
         gid = ragged.group_ids()
         return Ragged(np.clip(ragged.values, self.y_lo[gid], self.y_up[gid]), ragged.offsets)
 
-    @property
+    @cached_property
     def follow_f(self) -> Ragged:
         """Followers' f(X_0:t) = clipped outcomes."""
         return self.clip(self.follow)
 
-    @property
+    @cached_property
     def twin_f(self) -> Ragged:
         """Twin runs' f(X_0, Xtwin_1:t) = clipped outcomes."""
         return self.clip(self.twin)
 
-    @property
+    @cached_property
     def q_lo_hat(self) -> np.ndarray:
         """Qhat_lo = mean of Y_lo over entering trajectories (NaN when n = 0)."""
         return self._mean(self.follow_f.sums() + (self.n - self.n_follow) * self.y_lo, self.n)
 
-    @property
+    @cached_property
     def q_up_hat(self) -> np.ndarray:
         """Qhat_up = mean of Y_up over entering trajectories (NaN when n = 0)."""
         return self._mean(self.follow_f.sums() + (self.n - self.n_follow) * self.y_up, self.n)
 
-    @property
+    @cached_property
     def q_twin_hat(self) -> np.ndarray:
         """Qhat_twin = mean of f over entering twin runs (NaN when nhat = 0)."""
         return self._mean(self.twin_f.sums(), self.nhat)
 
-    @property
+    @cached_property
     def propensity(self) -> np.ndarray:
         """P(A_1:t = a_1:t | X_0:N in B_0:N) estimate = n_follow / n = 1 - width ratio."""
         return self._mean(self.n_follow.astype(float), self.n)
 
-    @property
+    @cached_property
     def q_obs_hat(self) -> np.ndarray:
         """Naive observational mean of f given A = a, X in B (followers only); not a bound."""
         return self._mean(self.follow_f.sums(), self.n_follow)

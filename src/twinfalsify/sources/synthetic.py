@@ -71,6 +71,17 @@ _PARAMS = {
 }
 
 
+_IDX = {f: i for i, f in enumerate(FEATURES)}
+_DYN_IDX = [_IDX[k] for k in DYNAMIC]
+
+
+def _features(x0: pd.DataFrame | np.ndarray) -> np.ndarray:
+    """Rows of X_0 as an (n, len(FEATURES)) array (one pandas call, then numpy only)."""
+    if isinstance(x0, np.ndarray):
+        return x0
+    return x0[list(FEATURES)].to_numpy(float)
+
+
 def g_iv(dose: np.ndarray) -> np.ndarray:
     """Fluid response curve: log(1 + mL/h / 100)."""
     return np.log1p(np.asarray(dose, float) / 100.0)
@@ -113,17 +124,18 @@ class SyntheticWorld:
         m[:, col["Calcium"]] += -0.1 * sex
         return m
 
-    def posterior_u(self, x0: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    def posterior_u(self, x0: pd.DataFrame | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Exact Gaussian p(U | X_0 = x0): (mean, sd) per row."""
-        z0 = self.to_working(x0)
-        m = self.baseline_mean(x0["age"].to_numpy(float), x0["sex"].to_numpy(float))
+        x = _features(x0)
+        z0 = self.to_working(x)
+        m = self.baseline_mean(x[:, _IDX["age"]], x[:, _IDX["sex"]])
         b0, s0 = self._vec(2), self._vec(1)
         precision = 1.0 + np.sum(b0**2 / s0**2)
         mean = ((z0 - m) * (b0 / s0**2)).sum(axis=1) / precision
         return mean, np.full(len(x0), 1.0 / np.sqrt(precision))
 
-    def to_working(self, frame: pd.DataFrame) -> np.ndarray:
-        z = frame[list(DYNAMIC)].to_numpy(float).copy()
+    def to_working(self, frame: pd.DataFrame | np.ndarray) -> np.ndarray:
+        z = _features(frame)[:, _DYN_IDX].astype(float)
         for j, k in enumerate(DYNAMIC):
             if k in LOG_SCALE:
                 z[:, j] = np.log(z[:, j])
@@ -261,9 +273,10 @@ class SyntheticWorld:
         """
         n, hours, _ = doses.shape
         seeds = np.asarray(seeds, dtype=np.uint64)
+        x0 = _features(x0)
         mean_u, sd_u = self.posterior_u(x0)
         u = mean_u + sd_u * noise.normal(noise.combine(seeds, 0xA11CE))
-        demo = x0[["age", "sex", "weight"]].to_numpy(float)
+        demo = x0[:, [_IDX["age"], _IDX["sex"], _IDX["weight"]]]
         z = self.to_working(x0)
         keys = noise.dose_prefix_keys(doses)
         k_idx = np.arange(len(DYNAMIC) + 1, dtype=np.uint64)

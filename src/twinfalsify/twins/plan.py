@@ -116,6 +116,56 @@ def x0_frame(d: pd.DataFrame, stay_ids: list[int]) -> pd.DataFrame:
     return first.loc[stay_ids, list(FEATURES)].reset_index()
 
 
+def _simulate_leaves(
+    twin: Twin, leaves: list[str], x0: pd.DataFrame, seeds: np.ndarray, actions: ActionBins,
+    log,
+) -> list:
+    """One SimResult-like (features, status, message, clamped) per leaf, all m runs each.
+
+    A ProtocolTwin gets every leaf in one call (shorter leaves padded with
+    all-NaN hours, which the runner reads as a shorter run): one worker pool
+    for the shard, and the runner's seed-grouped, prefix-ordered schedule lets
+    a save/restore twin branch shared prefixes. In-process twins get one
+    vectorised call per leaf.
+    """
+    from twinfalsify.twins.protocol_twin import ProtocolTwin
+
+    m = len(x0)
+    seqs = [parse_node(leaf) for leaf in leaves]
+    if isinstance(twin, ProtocolTwin) and seqs:
+        t = max(map(len, seqs))
+        doses = np.full((len(seqs) * m, t, 2), np.nan)
+        for j, seq in enumerate(seqs):
+            doses[j * m : (j + 1) * m, : len(seq)] = actions.doses(np.asarray(seq))
+        res = twin.simulate(
+            pd.concat([x0] * len(seqs), ignore_index=True), doses, np.tile(seeds, len(seqs))
+        )
+        if res.features.shape[:2] != (len(seqs) * m, t):
+            raise ContractError(
+                f"twin {twin.name}: simulate returned features of shape {res.features.shape}"
+            )
+        out = []
+        for j, seq in enumerate(seqs):
+            rows = slice(j * m, (j + 1) * m)
+            out.append((res.features[rows, : len(seq)], res.status[rows], res.message[rows],
+                        res.clamped[rows]))
+        return out
+    out = []
+    start = time.monotonic()
+    for i, seq in enumerate(seqs, 1):
+        doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
+        res = twin.simulate(x0, doses, seeds)
+        out.append((res.features, res.status, res.message, res.clamped))
+        rate = i * m / max(time.monotonic() - start, 1e-9)
+        print(
+            f"[twin {twin.name}] leaf {i}/{len(seqs)} ({leaves[i - 1]}): {m} runs, "
+            f"{rate:,.0f} runs/s",
+            file=log,
+            flush=True,
+        )
+    return out
+
+
 def run_shard(
     twin: Twin,
     plan: TwinPlan,
@@ -124,46 +174,49 @@ def run_shard(
     actions: ActionBins,
     log=sys.stderr,
 ) -> pd.DataFrame:
-    """Simulate the shard's leaves for all planned X_0; one row per (node, X_0)."""
+    """Simulate the shard's leaves for all planned X_0; one row per (node, X_0).
+
+    Node a_1:s of run i holds hour s of any simulated leaf extending a_1:s
+    (a twin is non-anticipating). A run that failed at hour h > s still gives
+    a usable node a_1:s (status ok); nodes from hour h on carry the failure
+    (status, message). When several leaves share a node, an ok value wins
+    over a failure (e.g. one leaf's run timed out, another's did not); for a
+    deterministic twin all ok values agree.
+    """
     if not 0 <= shard < len(plan.shards):
         raise ContractError(f"twin shard {shard} does not exist (plan has {len(plan.shards)})")
     seeds = plan.run_seeds()
     m = len(x0)
     frames: dict[str, pd.DataFrame] = {}
     leaves = plan.shards[shard]  # may be empty: fewer first actions than shards
-    start = time.monotonic()
-    for i, leaf in enumerate(leaves, 1):
+    for leaf, (feats, status, message, clamped) in zip(
+        leaves, _simulate_leaves(twin, leaves, x0, seeds, actions, log), strict=True
+    ):
         seq = parse_node(leaf)
-        doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
-        res = twin.simulate(x0, doses, seeds)
-        if res.features.shape != (m, len(seq), len(FEATURES)):
+        if feats.shape != (m, len(seq), len(FEATURES)):
             raise ContractError(
-                f"twin {twin.name}: simulate returned features of shape {res.features.shape}, "
+                f"twin {twin.name}: simulate returned features of shape {feats.shape}, "
                 f"expected {(m, len(seq), len(FEATURES))}"
             )
+        status = np.asarray(status, dtype=object)
         for s in range(1, len(seq) + 1):
             name = node_name(seq[:s])
-            if name in frames:
-                continue
-            vals = res.features[:, s - 1, :]
+            vals = feats[:, s - 1, :]
             done = np.isfinite(vals).all(axis=1)
             f = pd.DataFrame(vals, columns=list(FEATURES))
-            f.insert(0, "clamped", res.clamped)
-            f.insert(0, "message", np.where(done, "", res.message))
-            f.insert(
-                0, "status", np.where(done, "ok", np.where(res.status == "ok", "error", res.status))
-            )
+            f.insert(0, "clamped", np.asarray(clamped, dtype=object))
+            f.insert(0, "message", np.where(done, "", np.asarray(message, dtype=object)))
+            f.insert(0, "status", np.where(done, "ok", np.where(status == "ok", "error", status)))
             f.insert(0, "init_stay_id", x0[STAY_ID].to_numpy(np.int64))
             f.insert(0, "t", s)
             f.insert(0, "node", name)
-            frames[name] = f
-        rate = i * m / max(time.monotonic() - start, 1e-9)
-        print(
-            f"[twin {twin.name} shard {shard}] leaf {i}/{len(leaves)} ({leaf}): {m} runs, "
-            f"{rate:,.0f} runs/s",
-            file=log,
-            flush=True,
-        )
+            old = frames.get(name)
+            if old is None:
+                frames[name] = f
+            else:  # shared node: fill the old failures this leaf completed
+                fill = (old["status"] != "ok").to_numpy() & done
+                for col in ("status", "message", "clamped", *FEATURES):
+                    old.loc[fill, col] = f.loc[fill, col].to_numpy()
     if not frames:
         return pd.DataFrame(columns=list(NODE_COLUMNS))
     return pd.concat(frames.values(), ignore_index=True)
@@ -196,3 +249,46 @@ def load_nodes(runs: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNode
 def status_summary(runs: pd.DataFrame) -> dict:
     counts = runs.groupby(["t", "status"]).size().unstack(fill_value=0)
     return json.loads(counts.to_json(orient="index"))
+
+
+def _clamp_features(value: object) -> set[str]:
+    """Feature names in one ``clamped`` cell: JSON text or dict {feature: [given, used]}."""
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return set()
+    if isinstance(value, str):
+        if not value.strip():
+            return set()
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise ContractError(f"twin runs: column clamped holds non-JSON {value[:60]!r}") from exc
+    if not isinstance(value, dict):
+        raise ContractError(f"twin runs: column clamped must hold JSON objects, got {value!r}")
+    return set(value)
+
+
+def clamp_shares(runs: pd.DataFrame) -> dict[str, object]:
+    """Share of twin runs whose X_0 the twin clamped, per feature (issue 10 point 3).
+
+    A run = one initial stay (X_0); its ``clamped`` record ({feature: [given,
+    used]}) is the same on every node row of it (clamping happens at
+    initialisation), so the union over its rows is taken. Returns {"runs": m,
+    "any": share of runs with any clamp, "by_feature": {feature: share}} with
+    shares in [0, 1]; features never clamped are left out.
+    """
+    for col in ("init_stay_id", "clamped"):
+        if col not in runs.columns:
+            raise ContractError(f"twin runs: column {col} missing (needed for clamp shares)")
+    per_run: dict[int, set[str]] = {}
+    for stay, cell in zip(runs["init_stay_id"].tolist(), runs["clamped"].tolist(), strict=True):
+        per_run.setdefault(int(stay), set()).update(_clamp_features(cell))
+    m = len(per_run)
+    counts: dict[str, int] = {}
+    for feats in per_run.values():
+        for f in feats:
+            counts[f] = counts.get(f, 0) + 1
+    return {
+        "runs": m,
+        "any": (sum(1 for f in per_run.values() if f) / m) if m else 0.0,
+        "by_feature": {f: counts[f] / m for f in sorted(counts)},
+    }

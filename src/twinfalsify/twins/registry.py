@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,8 @@ from twinfalsify.twins.base import Twin
 
 BUILTIN_KINDS = ("oracle", "biased", "fitted")
 KINDS = (*BUILTIN_KINDS, "command")
+RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env")  # how, not what, to run
+_SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
 def _load_context(context: dict[str, Any] | Path | str | None) -> dict[str, Any]:
@@ -47,8 +51,10 @@ def make_twin(
     context: {"source": <config source section>, "d0": <path of D0 parquet>} (or a
     folder/JSON file holding it as twin_context.json), needed by builtin twins.
     """
-    ctx = _load_context(context)
     kind = spec.get("kind")
+    if spec.get("protocol") and kind in BUILTIN_KINDS:
+        return served_builtin(name, spec, context)
+    ctx = _load_context(context)
     if kind == "oracle":
         from twinfalsify.twins.builtin import OracleTwin
 
@@ -84,12 +90,47 @@ def make_twin(
             command = shlex.split(command)
         if not command:
             raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
-        return ProtocolTwin(
-            name,
-            command,
-            workers=int(spec.get("workers", 1)),
-            timeout_s=float(spec.get("timeout_s", 600.0)),
-            retries=int(spec.get("retries", 2)),
-            env=spec.get("env"),
-        )
+        return ProtocolTwin(name, command, **_runner_options(spec, 600.0))
     raise ContractError(f"twins.{name}: unknown kind {kind!r}; choose one of {', '.join(KINDS)}")
+
+
+def _runner_options(spec: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+    return {
+        "workers": int(spec.get("workers", 1)),
+        "timeout_s": float(spec.get("timeout_s", timeout_s)),
+        "retries": int(spec.get("retries", 2)),
+        "env": spec.get("env"),
+    }
+
+
+def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict | None) -> Twin:
+    """A builtin twin run as ``python -m twinfalsify.twins.serve`` subprocesses (ProtocolTwin).
+
+    spec: the builtin spec plus ``protocol: true`` and the runner options
+    ``workers`` (processes), ``timeout_s`` (per run, default 60 s), ``retries``.
+    context: path of the study's twin_context.json (or its folder): the served
+    process builds its twin from it, so it must be a file, not a dict. The
+    served twin computes exactly what the in-process one does (builtin twins
+    key their noise by seed and dose prefix), so results are bit-identical.
+    """
+    from twinfalsify.twins.protocol_twin import ProtocolTwin
+
+    if context is None or isinstance(context, dict):
+        raise ContractError(
+            f"twins.{name}: protocol: true needs the study's twin context as a file "
+            "(results/<study>/twin_context.json), not an in-memory dict"
+        )
+    path = Path(context).resolve()
+    if not path.exists():
+        raise ContractError(f"twin context {path} does not exist")
+    inner = {k: v for k, v in spec.items() if k not in RUNNER_KEYS}
+    command = [
+        sys.executable, "-m", "twinfalsify.twins.serve", name,
+        "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
+    ]  # fmt: skip
+    opts = _runner_options(spec, 60.0)
+    # The served process must import this very library (scripts run it from src/
+    # without installing it).
+    pythonpath = os.pathsep.join(p for p in (str(_SRC), os.environ.get("PYTHONPATH")) if p)
+    opts["env"] = {"PYTHONPATH": pythonpath, **(opts["env"] or {})}
+    return ProtocolTwin(name, command, **opts)

@@ -1,5 +1,6 @@
 """MIMIC-III v1.4 sepsis-3 cohort (AI-Clinician criteria with the paper's changes) as hourly
-trajectories over the first ``t_max`` + 1 ICU hours, plus a CONSORT table and missingness.
+trajectories over ``t_max`` + 1 hours from a time anchor t0 (ICU admission, or the first
+complete vital set), plus a CONSORT table, missingness and the anchor of each stay.
 
 Steps (each a row of the CONSORT table; docs/mimic3.md explains each and how it differs
 from the AI-Clinician code):
@@ -9,13 +10,17 @@ from the AI-Clinician code):
     antibiotic or antibiotic <= 72 h after the culture (Seymour et al. 2016; onset = the
     earlier of the pair, AI-Clinician's loop over antibiotics in time order);
  4. SOFA >= 2: the maximum over 4 h blocks of [onset - 48 h, onset + 24 h] of a SOFA score
-    from the components measurable in the raw tables (see ``sofa_blocks``), baseline 0;
+    from the components measurable in the raw tables (see ``max_sofa``), baseline 0;
  5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present);
  6. IV fluid / vasopressor intake documented (at least one INPUTEVENTS_MV/CV row);
  7. treatment withdrawal excluded (AI-Clinician's rule, adapted: see ``withdrawn``);
- 8. ICU stay covers hours 0..t_max (OUTTIME >= INTIME + (t_max + 1) h);
- 9. weight documented (a weight within 72 h before an hour, or charted during the stay);
-10. the paper's change: every vital (HR, SysBP, DiaBP, MeanBP, RR, Temp_C) present in each
+ 8. anchor: t = 0 is fixed. ``intime``: t = 0 at INTIME (excludes nothing).
+    ``first_vitals`` (default): t = 0 at INTIME + k h for the first whole hour k within the
+    first ``anchor_window_h`` ICU hours whose block has every vital (HR, SysBP, DiaBP,
+    MeanBP, RR, Temp_C) after BP completion and sample-and-hold; stays without one excluded;
+ 9. ICU stay covers hours 0..t_max after the anchor (OUTTIME >= t0 + (t_max + 1) h);
+10. weight documented (a weight within 72 h before an hour, or charted during the stay);
+11. the paper's change: every vital (HR, SysBP, DiaBP, MeanBP, RR, Temp_C) present in each
     hour t = 0..t_max after sample-and-hold.
 """
 
@@ -43,6 +48,7 @@ class Mimic3Cohort:
     trajectories: pd.DataFrame  # schema.TRAJECTORY_COLUMNS
     consort: pd.DataFrame  # step, description, n_stays, n_excluded
     missingness: pd.DataFrame  # feature, t, n_missing_raw, share_missing_raw, n_imputed
+    anchors: pd.DataFrame  # stay_id, intime, t0 (time of t = 0), anchor_h (t0 - INTIME, h)
 
 
 class _Consort:
@@ -294,13 +300,62 @@ def withdrawn(stays: pd.DataFrame, mv_v: pd.DataFrame, cv_v: pd.DataFrame) -> pd
     return cand.difference(on_at_end)
 
 
-def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1) -> Mimic3Cohort:
+ANCHORS = ("intime", "first_vitals")
+ANCHOR_WINDOW_H = 6  # first_vitals: the complete vital set must start within the first 6 ICU h
+
+
+def first_complete_vitals(held: pd.DataFrame, window_h: int) -> pd.Series:
+    """Per stay, the first hour block k in 0..window_h - 1 (block [INTIME + k h,
+    INTIME + (k + 1) h)) in which every vital of ``hourly.VITALS`` is present after
+    blood-pressure completion and sample-and-hold; stays without one are left out.
+
+    ``held`` is indexed by (icustay_id, t) with t counted in hours from INTIME. Returns
+    icustay_id -> k (int64), sorted by icustay_id.
+    """
+    ok = held[list(hourly.VITALS)].notna().all(axis=1).to_numpy()
+    sid = held.index.get_level_values("icustay_id")[ok]
+    k = held.index.get_level_values("t")[ok].to_numpy("int64")
+    first = pd.Series(k, index=sid).groupby(level=0).min()
+    first = first[first < window_h].astype("int64")
+    first.index.name = "icustay_id"
+    return first.rename("anchor_h")
+
+
+def realign(frame: pd.DataFrame, offset_h: pd.Series, t_max: int) -> pd.DataFrame:
+    """Re-index hourly blocks from INTIME-relative hours to anchor-relative hours:
+    row (stay, k) becomes (stay, k - offset_h[stay]); only t = 0..t_max are kept, and only
+    stays in ``offset_h``. Exact because blocks and anchors both sit on whole hours from
+    INTIME, so anchor-relative block t *is* INTIME-relative block offset + t."""
+    sid = frame.index.get_level_values("icustay_id")
+    off = offset_h.reindex(sid).to_numpy("float64")  # NaN for stays without an anchor
+    rel = frame.index.get_level_values("t").to_numpy("float64") - off
+    keep = (rel >= 0) & (rel <= t_max)
+    out = frame[keep].copy()
+    out.index = pd.MultiIndex.from_arrays([sid[keep], rel[keep].astype("int64")],
+                                          names=["icustay_id", "t"])
+    return out.sort_index()
+
+
+def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
+                   anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H
+                   ) -> Mimic3Cohort:
     """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
 
-    Trajectory row (stay, t): features over hour [INTIME + t h, INTIME + (t+1) h) (block
-    means, sample-and-hold, labs still missing imputed by 1-NN), iv_fluid (mL/h) and
-    vasopressor (ug/kg/min) given during that hour. See the module docstring for the steps.
+    Trajectory row (stay, t): features over hour [T0 + t h, T0 + (t+1) h) (block means,
+    sample-and-hold, labs still missing imputed by 1-NN), iv_fluid (mL/h) and vasopressor
+    (ug/kg/min) given during that hour, where the anchor T0 is
+
+    - ``anchor="intime"``: ICU admission (INTIME), the paper's "first ICU hours";
+    - ``anchor="first_vitals"``: INTIME + k h for the first whole hour k < ``anchor_window_h``
+      whose block holds every vital (``first_complete_vitals``); stays without such a block
+      are excluded at the CONSORT step ``anchor``.
+
+    See the module docstring for the steps and docs/mimic3.md for the choice of anchor.
     """
+    if anchor not in ANCHORS:
+        raise ContractError(f"mimic3 source: anchor must be one of {ANCHORS}, got {anchor!r}")
+    if int(anchor_window_h) < 1:
+        raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
     folder = Path(folder)
     con = connect(folder, threads=threads)
     c = _Consort()
@@ -333,22 +388,42 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1)
     stays = stays.drop(index=withdrawn(stays, mv_all, cv_all))
     c.add("not_withdrawn", "treatment withdrawal excluded (AI-Clinician rule, adapted)",
           stays.index)
-    stays = stays[stays["outtime"] >= stays["intime"] + (t_max + 1) * HOUR]
-    c.add("stay_covers_window", f"ICU stay lasts at least {t_max + 1} h", stays.index)
 
+    # hourly blocks k = 0..n_blk - 1 from INTIME: enough to find the anchor and hold t_max
+    # hours after it (intime: the anchor is block 0)
+    window = int(anchor_window_h) if anchor == "first_vitals" else 1
+    n_blk = window + t_max
     intime = stays["intime"]
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
-    lo, hi = intime - max_hold * HOUR, intime + (t_max + 1) * HOUR
+    lo, hi = intime - max_hold * HOUR, intime + n_blk * HOUR
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
     ev = _events(con, stays, lo, hi, feats) if len(stays) else pd.DataFrame(
         columns=["icustay_id", "time", "feature", "value"])
-    raw = hourly.block_means(ev, intime, feats, t_max)
-    raw_bp = hourly.complete_bp(raw)
-    held = hourly.sample_and_hold(raw_bp, ev, intime)
+    raw = hourly.block_means(ev, intime, feats, n_blk - 1)
+    held = hourly.sample_and_hold(hourly.complete_bp(raw), ev, intime)
+    if anchor == "first_vitals":
+        offset = first_complete_vitals(held, window)
+        c.add("anchor", f"t = 0 at the first hour with every vital, within the first {window} "
+              "ICU hours", offset.index)
+    else:
+        offset = pd.Series(0, index=stays.index, dtype="int64", name="anchor_h")
+        c.add("anchor", "t = 0 at ICU admission (INTIME)", offset.index)
+    stays = stays.loc[offset.index]
+    t0 = stays["intime"] + offset.reindex(stays.index).to_numpy() * HOUR
+    stays = stays[stays["outtime"] >= t0 + (t_max + 1) * HOUR]
+    c.add("stay_covers_window", f"ICU stay lasts at least {t_max + 1} h after t = 0",
+          stays.index)
+    offset = offset.reindex(stays.index)
+    t0 = t0.reindex(stays.index)
+    raw = realign(raw, offset, t_max)
+    held = realign(held, offset, t_max)
+
     # weight: if no weight within 72 h before an hour, the first weight charted in the stay
     if len(stays):
-        wstay = _events(con, stays, intime, stays["outtime"], ("weight",))
-        first_w = wstay.sort_values("time").groupby("icustay_id")["value"].first()
+        wstay = _events(con, stays, stays["intime"], stays["outtime"], ("weight",))
+        # the first charting instant's weights, averaged (kg and lb are often charted together)
+        first_t = wstay.groupby("icustay_id")["time"].transform("min")
+        first_w = wstay[wstay["time"] == first_t].groupby("icustay_id")["value"].mean()
         keys = held.index.get_level_values("icustay_id")
         held["weight"] = held["weight"].fillna(pd.Series(first_w.reindex(keys).to_numpy(),
                                                          index=held.index))
@@ -363,6 +438,7 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1)
     ids = stays.index
     held = held.loc[ids]
     raw = raw.loc[ids]
+    t0 = t0.loc[ids]
     after_hold_missing = held[list(hourly.LABS)].isna()
     if len(ids):
         # labs still missing after sample-and-hold: 1-NN over all non-demographic features
@@ -388,9 +464,10 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1)
     traj = held.reset_index()
     traj["age"] = stays["age"].reindex(traj["icustay_id"]).to_numpy()
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
-    mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, intime.loc[ids], hi.loc[ids])
-    fl = doses.hourly_fluid(intime.loc[ids], mv_f, cv_f, t_max)
-    va = doses.hourly_vasopressor(intime.loc[ids], mv_v, cv_v, t_max)
+    # doses on the same anchor: hour t of the doses is [t0 + t h, t0 + (t + 1) h)
+    mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR)
+    fl = doses.hourly_fluid(t0, mv_f, cv_f, t_max)
+    va = doses.hourly_vasopressor(t0, mv_v, cv_v, t_max)
     key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
     traj["iv_fluid"] = fl.reindex(key).to_numpy() if len(ids) else []
     traj["vasopressor"] = va.reindex(key).to_numpy() if len(ids) else []
@@ -399,9 +476,12 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1)
     if len(traj):
         traj = schema.validate_trajectories(traj, source=f"mimic3 extraction of {folder}",
                                             t_max=t_max)
+    anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
+                            "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
+                            "anchor_h": offset.reindex(ids).to_numpy("int64")})
     con.close()
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
-                        missingness=missingness)
+                        missingness=missingness, anchors=anchors)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -411,14 +491,18 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("outdir")
     p.add_argument("--t-max", type=int, default=schema.T_MAX)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--anchor", choices=ANCHORS, default="first_vitals")
+    p.add_argument("--anchor-window-h", type=int, default=ANCHOR_WINDOW_H)
     a = p.parse_args(argv)
     from .tables import resolve_mimic3_dir
-    res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads)
+    res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
+                         anchor=a.anchor, anchor_window_h=a.anchor_window_h)
     out = Path(a.outdir)
     out.mkdir(parents=True, exist_ok=True)
     res.trajectories.to_parquet(out / "trajectories.parquet", index=False)
     res.consort.to_csv(out / "cohort_consort.csv", index=False)
     res.missingness.to_csv(out / "cohort_missingness.csv", index=False)
+    res.anchors.to_csv(out / "cohort_anchors.csv", index=False)
     print(res.consort.to_string(index=False))
 
 

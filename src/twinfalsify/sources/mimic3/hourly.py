@@ -114,6 +114,7 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     before ICU admission count (labs are drawn on the ward / in the ED).
 
     Rule (AI-Clinician SAH.m): a value is carried forward for hold_hours after it was taken.
+    Several values taken at the same last instant are averaged.
     """
     hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
     out = blocks.copy()
@@ -125,7 +126,10 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
         miss = out[feat].isna().to_numpy()
         if not miss.any():
             continue
-        e = ev[ev["feature"] == feat].sort_values("time")
+        # values charted at the same instant (e.g. a weight in kg and in lb) are averaged,
+        # as within a block; otherwise the held value would depend on row order
+        e = (ev[ev["feature"] == feat].groupby(["icustay_id", "time"], as_index=False)["value"]
+             .mean().sort_values("time", kind="stable"))
         if e.empty:
             continue
         q = pd.DataFrame({"icustay_id": keys["icustay_id"].to_numpy()[miss],
@@ -142,29 +146,79 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     return out
 
 
-def knn_impute(x: np.ndarray, chunk: int = 10_000) -> np.ndarray:
+def knn_impute(x: np.ndarray, chunk: int = 10_000, batch: int = 512) -> np.ndarray:
     """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
     on chunks of 10,000 records).
 
     For a row with missing column j, the donor is the row, among rows with column j observed,
     minimising the mean over commonly observed columns of ((x_i - x_k) / sd)^2 (standardised
     Euclidean distance, sd = column standard deviation over all rows; averaging over the
-    shared columns keeps rows with different missingness comparable). Rows are processed in
-    chunks of ``chunk`` rows, donors searched within the chunk. Columns with no observed
-    value in a chunk stay NaN.
+    shared columns keeps rows with different missingness comparable); ties go to the first
+    row. Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
+    Columns with no observed value in a chunk stay NaN.
+
+    Cost: linear in the number of rows (chunk-bounded). Within a chunk, distances of a batch
+    of rows to all rows come from matrix products, with z = x / sd zero-filled and O the
+    observed mask: sum_shared (z_i - z_k)^2 = (z_i^2) . O_k + O_i . (z_k^2) - 2 z_i . z_k,
+    n_shared = O_i . O_k. The donor is then confirmed by the direct formula on every row
+    within 1e-6 (1 + d_min) of the approximate minimum (the expansion's rounding error is
+    ~1e-13 of the squares), so the result equals the direct definition, ties included
+    (``_knn_impute_direct`` is that definition, kept for tests and benchmarks).
     """
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    sd = np.nanstd(x, axis=0)
-    sd[~np.isfinite(sd) | (sd == 0)] = 1.0
+    sd = _knn_scale(x)
     for c0 in range(0, len(x), chunk):
         xc = x[c0:c0 + chunk] / sd
         obs = np.isfinite(xc)
+        z = np.where(obs, xc, 0.0)
+        z2, of = z * z, obs.astype(float)
+        rows = np.flatnonzero(~obs.all(axis=1))
+        for b0 in range(0, len(rows), batch):
+            r = rows[b0:b0 + batch]
+            num = z2[r] @ of.T + of[r] @ z2.T - 2.0 * (z[r] @ z.T)
+            n = of[r] @ of.T
+            approx = np.where(n > 0, num / np.maximum(n, 1.0), np.inf)
+            approx[np.arange(len(r)), r] = np.inf  # never its own donor
+            for j in np.flatnonzero(~obs[r].all(axis=0)):
+                need = np.flatnonzero(~obs[r, j])
+                cand = np.where(obs[:, j], approx[need], np.inf)
+                dmin = cand.min(axis=1)
+                near = cand <= (dmin + 1e-6 * (1.0 + dmin))[:, None]
+                k = np.argmin(cand, axis=1)
+                for p in np.flatnonzero(np.isfinite(dmin) & (near.sum(axis=1) > 1)):
+                    c = np.flatnonzero(near[p])  # near-ties: decide by the direct formula
+                    k[p] = c[int(np.argmin(_direct_dist(xc, obs, r[need[p]], c)))]
+                ok = np.isfinite(dmin)
+                out[c0 + r[need[ok]], j] = x[c0 + k[ok], j]
+    return out
+
+
+def _knn_scale(x: np.ndarray) -> np.ndarray:
+    sd = np.nanstd(x, axis=0)
+    sd[~np.isfinite(sd) | (sd == 0)] = 1.0
+    return sd
+
+
+def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray) -> np.ndarray:
+    """Mean squared standardised difference of row i to ``rows`` over shared columns."""
+    shared = obs[rows] & obs[i]
+    diff = np.where(shared, xc[rows] - np.where(obs[i], xc[i], 0.0), 0.0)
+    n = shared.sum(axis=1)
+    return np.where(n > 0, (diff ** 2).sum(axis=1) / np.maximum(n, 1), np.inf)
+
+
+def _knn_impute_direct(x: np.ndarray, chunk: int = 10_000) -> np.ndarray:
+    """``knn_impute`` by the definition, one row at a time (O(chunk) numpy work per row)."""
+    x = np.asarray(x, dtype=float)
+    out = x.copy()
+    sd = _knn_scale(x)
+    for c0 in range(0, len(x), chunk):
+        xc = x[c0:c0 + chunk] / sd
+        obs = np.isfinite(xc)
+        every = np.arange(len(xc))
         for i in np.flatnonzero(~obs.all(axis=1)):
-            shared = obs & obs[i]
-            diff = np.where(shared, xc - np.where(obs[i], xc[i], 0.0), 0.0)
-            n = shared.sum(axis=1)
-            dist = np.where(n > 0, (diff ** 2).sum(axis=1) / np.maximum(n, 1), np.inf)
+            dist = _direct_dist(xc, obs, i, every)
             dist[i] = np.inf
             for j in np.flatnonzero(~obs[i]):
                 cand = np.where(obs[:, j], dist, np.inf)

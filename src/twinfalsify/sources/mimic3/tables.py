@@ -93,6 +93,7 @@ def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 
     """DuckDB connection with one view per MIMIC table (upper-case view names)."""
     con = duckdb.connect(database=":memory:")
     con.execute(f"SET threads = {int(threads)}")
+    con.execute("SET enable_progress_bar = false")  # it would write to the rule's stderr
     for table in tables or tuple(REQUIRED_COLUMNS):
         path = find_table(folder, table)
         con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')

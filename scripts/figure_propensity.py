@@ -1,0 +1,17 @@
+"""Rule figure_propensity: P(A = a | X in B) against n, coloured by rejection."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify.figures import propensity_scatter, save_all  # noqa: E402
+from twinfalsify.io import read_parquet, run_rule  # noqa: E402
+
+
+def main(sm):
+    fig = propensity_scatter(read_parquet(sm.input[0], "results"))
+    save_all(fig, sm.output.png, sm.output.pdf)
+
+
+run_rule(snakemake, main)  # noqa: F821

@@ -1,0 +1,31 @@
+"""Rule summary: cohort, split, hypotheses, twin runs, clamps, rejections, untestable."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
+
+from twinfalsify.io import read_parquet, run_rule, write_text  # noqa: E402
+from twinfalsify.summary import study_summary, summary_html, summary_markdown  # noqa: E402
+
+
+def main(sm):
+    twins = {
+        name: {
+            "runs": read_parquet(runs, "twin runs"),
+            "results": read_parquet(res, "results"),
+        }
+        for name, runs, res in zip(sm.params.twins, sm.input.runs, sm.input.results, strict=True)
+    }
+    tables = study_summary(
+        sm.params.study,
+        read_parquet(sm.input.d0, "D0"),
+        read_parquet(sm.input.d, "D"),
+        read_parquet(sm.input.hypotheses, "hypotheses"),
+        twins,
+    )
+    write_text(summary_markdown(sm.params.study, tables), sm.output.md)
+    write_text(summary_html(sm.params.study, tables), sm.output.html)
+
+
+run_rule(snakemake, main)  # noqa: F821

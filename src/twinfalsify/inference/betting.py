@@ -1,0 +1,408 @@
+"""Exact test of H_lo / H_up from betting confidence bounds (Waudby-Smith & Ramdas 2024).
+
+Bounds. Rescale a side's sample to x_i = (clip(y_i) - y_lo) / R in [0, 1] (R = y_up - y_lo),
+put it in a seeded random order (see below) and, for a candidate mean m, form the
+capital processes (WSR 2024, Sec. 4, "hedged capital", one-sided halves):
+
+    K+_t(m) = prod_{i<=t} (1 + lambda+_i(m) (x_i - m)),   lambda+_i(m) = min(lambda_i, c / m),
+    K-_t(m) = prod_{i<=t} (1 - lambda-_i(m) (x_i - m)),   lambda-_i(m) = min(lambda_i, c / (1 - m)),
+
+with the predictable plug-in bet tuned for a fixed sample size n (WSR 2024, Sec. 5.1
+and Remark "fixed-n"): lambda_i = min(c, sqrt(2 log(1/delta0) / (n sigma2_{i-1}))),
+mu_i = (1/2 + sum_{j<=i} x_j) / (i + 1), sigma2_i = (1/4 + sum_{j<=i} (x_j - mu_j)^2) / (i + 1),
+sigma2_0 = 1/4, c = 0.9 (WSR use 1/2 or 3/4; any c < 1 is valid, 0.9 is
+tighter at the small levels Holm needs, measured in docs/statistics.md).
+lambda_i depends on x_1..x_{i-1} only, so when the true
+mean is <= m (resp. >= m) K+ (K-) is a non-negative supermartingale with K_0 = 1
+and Ville's inequality gives P(max_{t<=n} K_t >= 1/delta) <= delta. Hence the
+one-sided (1 - delta) bounds
+
+    lower(delta) = sup{m : max_t K+_t(m) >= 1/delta},
+    upper(delta) = inf{m : max_t K-_t(m) >= 1/delta},
+
+valid in finite samples for every delta. Each factor of K+ is non-increasing in m
+(K- non-decreasing), so the bounds are monotone in delta and the sets are intervals.
+
+p-value. Because lambda_i does not depend on the level being tested (it is tuned
+once, at delta0), the union rule at alpha (delta = alpha/2 per side) rejects H_lo
+iff some m has max_t K+_lo,t(m) >= 2/alpha and max_t K-_twin,t(m) >= 2/alpha, so
+
+    p_lo = min(1, 2 / K*),   K* = max_m min(max_t K+_lo,t(m), max_t K-_twin,t(m)),
+
+attained where the decreasing and the increasing curve cross; found by a
+vectorised safeguarded false-position search on m (p is reported at a bracket end,
+so never understated). Mirror for H_up (K+ of the twin against K- of Y_up).
+Validity: under H_lo (Q_twin >= Q_lo) any such m is either >= Q_lo (then
+K+_lo(Q_lo) >= 2/alpha, probability <= alpha/2) or < Q_twin (then K-_twin(Q_twin) >=
+2/alpha, probability <= alpha/2).
+
+Order. The bound depends on the order of the sample. The compact observational
+sample lists followers first; the order used is a uniformly random permutation
+(seeded; independent of the data), drawn for the observational sample (shared by
+Y_lo and Y_up) and for the twin sample. Same seed, same p-values.
+
+Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
+Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are
+made); any delta0 gives valid bounds, it only moves where they are tightest.
+
+Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; sides
+independent. Reference: I. Waudby-Smith & A. Ramdas (2024), "Estimating means of
+bounded random variables by betting", JRSS-B 86(1):1-27; Ville (1939).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+
+C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
+
+
+@dataclass
+class OrderedSide:
+    """One side's rescaled sample of many hypotheses, ordered, with its bets (flat arrays)."""
+
+    x: np.ndarray  # (N,) values in [0, 1], group after group
+    lam: np.ndarray  # (N,) predictable bets lambda_i (before the m-dependent truncation)
+    offsets: np.ndarray  # (G + 1,)
+
+    @property
+    def sizes(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    def take(self, groups: np.ndarray) -> OrderedSide:
+        """The listed groups (sorted indices), compacted."""
+        keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), groups), self.sizes)
+        sizes = self.sizes[groups]
+        return OrderedSide(
+            self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        )
+
+
+def _segment_cumsum(v: np.ndarray, offsets: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Cumulative sums restarting at every group start (gid: group of every element)."""
+    cs = np.cumsum(v)
+    base = np.concatenate([[0.0], cs])[offsets[:-1]]
+    return cs - base[gid]
+
+
+def _layout(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(group id, 1-based position in its group) of every element of a flat layout."""
+    sizes = np.diff(offsets)
+    gid = np.repeat(np.arange(len(sizes)), sizes)
+    t = np.arange(offsets[-1]) - offsets[:-1][gid] + 1
+    return gid, t
+
+
+def plugin_bets(
+    x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
+    layout: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
+
+    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only.
+    """
+    sizes = np.diff(offsets)
+    gid, t = _layout(offsets) if layout is None else layout
+    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
+    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
+    prev = np.empty_like(sig2)  # sigma2_{i-1}, with sigma2_0 = 1/4 at every group start
+    prev[1:] = sig2[:-1]
+    prev[offsets[:-1][sizes > 0]] = 0.25
+    with np.errstate(divide="ignore"):
+        k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
+    return np.minimum(c, np.sqrt(k[gid] / prev))
+
+
+_CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)
+
+
+def _chunks(sizes: np.ndarray) -> list[tuple[int, int]]:
+    """Consecutive hypothesis ranges [h0, h1) holding about _CHUNK elements each."""
+    cum = np.concatenate([[0], np.cumsum(sizes)])
+    out, h0, h = [], 0, len(sizes)
+    while h0 < h:
+        h1 = int(np.searchsorted(cum, cum[h0] + _CHUNK, side="right")) - 1
+        h1 = min(max(h1, h0 + 1), h)
+        out.append((h0, h1))
+        h0 = h1
+    return out
+
+
+def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
+                c: float = C_TRUNC) -> np.ndarray:
+    """log max_{0<=t<=n} K^{sign}_t(m) per group (sign +1: K+, -1: K-); m has shape (G,).
+
+    Evaluated chunk by chunk of groups (cache-sized working arrays).
+    """
+    sizes = side.sizes
+    m = np.asarray(m, float)
+    with np.errstate(divide="ignore"):
+        cap = c / m if sign > 0 else c / (1.0 - m)
+    out = np.zeros(len(sizes))
+    for h0, h1 in _chunks(sizes):
+        o = side.offsets[h0: h1 + 1]
+        sl = slice(o[0], o[-1])
+        sz = sizes[h0:h1]
+        gid = np.repeat(np.arange(h1 - h0), sz)
+        lam = np.minimum(side.lam[sl], cap[h0:h1][gid])
+        term = np.log1p(sign * lam * (side.x[sl] - m[h0:h1][gid]))
+        cs = np.cumsum(term)
+        starts = o[:-1] - o[0]
+        base = np.concatenate([[0.0], cs])[starts]
+        nz = sz > 0
+        if not nz.any():
+            continue
+        if running_max:
+            mx = np.maximum.reduceat(cs, starts[nz])
+            out[h0:h1][nz] = np.maximum(0.0, mx - base[nz])  # t = 0: K_0 = 1
+        else:
+            out[h0:h1][nz] = cs[o[1:][nz] - o[0] - 1] - base[nz]
+    return out
+
+
+def _order_keys(sizes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random permutation within every group (flat indices), seeded.
+
+    Sort by group id + U(0, 1) key: within a group the order is that of i.i.d.
+    uniform keys, i.e. uniformly random (ties have probability ~0).
+    """
+    gid = np.repeat(np.arange(len(sizes), dtype=float), sizes)
+    return np.argsort(gid + rng.random(len(gid)), kind="stable")
+
+
+def ordered_sides(
+    samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC
+) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
+    """(Y_lo, Y_up, twin) rescaled to [0, 1], in seeded random order, with their bets.
+
+    The observational sample is materialised here (followers, then n - n_follow fill
+    values) because every position carries its own bet; Y_lo and Y_up share the
+    order. The observational and twin orders use independent streams spawned from
+    ``seed``, are built in two threads, chunk by chunk of hypotheses (cache-sized).
+    """
+    h = len(samples)
+    width = samples.width
+    if np.any(~(width > 0)):
+        bad = np.flatnonzero(~(width > 0))[:5]
+        raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
+    d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
+    rng_obs, rng_tw = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+    n = samples.n.astype(np.int64)
+    nf = samples.n_follow
+    offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+    follow, twin = samples.follow, samples.twin
+    y_lo = samples.y_lo
+
+    def obs() -> tuple[OrderedSide, OrderedSide]:
+        x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
+        l_lo, l_up = np.empty(offs[-1]), np.empty(offs[-1])
+        for h0, h1 in _chunks(n):
+            o = offs[h0: h1 + 1] - offs[h0]
+            lay = _layout(o)  # shared by Y_lo and Y_up
+            gid, t = lay
+            is_f = t <= nf[h0:h1][gid]
+            fv = follow.values[follow.offsets[h0]: follow.offsets[h1]]
+            fg = np.repeat(np.arange(h1 - h0), nf[h0:h1])
+            xf = np.zeros(len(gid))
+            xf[is_f] = (np.clip(fv, y_lo[h0:h1][fg], samples.y_up[h0:h1][fg])
+                        - y_lo[h0:h1][fg]) / width[h0:h1][fg]
+            perm = _order_keys(n[h0:h1], rng_obs)
+            xf, fill = xf[perm], ~is_f[perm]
+            sl = slice(offs[h0], offs[h1])
+            x_lo[sl] = np.where(fill, 0.0, xf)
+            x_up[sl] = np.where(fill, 1.0, xf)
+            l_lo[sl] = plugin_bets(x_lo[sl], o, d0[h0:h1], c, lay)
+            l_up[sl] = plugin_bets(x_up[sl], o, d0[h0:h1], c, lay)
+        return OrderedSide(x_lo, l_lo, offs), OrderedSide(x_up, l_up, offs)
+
+    def twin_side() -> OrderedSide:
+        sizes = twin.sizes
+        xt, lt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
+        for h0, h1 in _chunks(sizes):
+            o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
+            sl = slice(twin.offsets[h0], twin.offsets[h1])
+            g = np.repeat(np.arange(h1 - h0), sizes[h0:h1])
+            v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
+                 - y_lo[h0:h1][g]) / width[h0:h1][g]
+            xt[sl] = v[_order_keys(sizes[h0:h1], rng_tw)]
+            lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c)
+        return OrderedSide(xt, lt, twin.offsets)
+
+    with ThreadPoolExecutor(2) as pool:
+        f_obs, f_tw = pool.submit(obs), pool.submit(twin_side)
+        (lo, up), tw = f_obs.result(), f_tw.result()
+    return lo, up, tw
+
+
+def _crossing(
+    dec: OrderedSide, inc: OrderedSide, m0: np.ndarray, running_max: bool, c: float,
+    tol: float, max_iter: int,
+) -> np.ndarray:
+    """log K* lower bound per group: max_m min(g_dec(m), g_inc(m)), g = log max_t K.
+
+    g_dec = log max_t K+ of the side hypothesised larger (non-increasing in m),
+    g_inc = log max_t K- of the side hypothesised smaller (non-decreasing). Known:
+    g_inc(0) = 0 and g_dec(1) = 0 (every factor <= 1 there, K_0 = 1). Safeguarded
+    Illinois false position on h = g_dec - g_inc over the bracket [a, b] with
+    h(a) >= 0 >= h(b); K* lies between exp(max(g_dec(b), g_inc(a))) (attained,
+    returned) and exp(min(g_dec(a), g_inc(b))). Stops when these agree within tol,
+    or when the upper one is below log 2 (then p = 1 whatever K* is).
+    """
+    g = len(m0)
+    out = np.zeros(g)
+    a, b = np.zeros(g), np.ones(g)
+    da, ia = np.full(g, np.inf), np.zeros(g)  # g_dec(a), g_inc(a) at a = 0
+    db, ib = np.zeros(g), np.full(g, np.inf)  # g_dec(b), g_inc(b) at b = 1
+    act = np.arange(g)
+    d_side, i_side = dec, inc
+    last = np.zeros(g, dtype=np.int8)  # which end moved last (+1 a, -1 b), for Illinois
+    ha_w, hb_w = np.full(g, np.nan), np.full(g, np.nan)  # Illinois-weighted h at the ends
+    m = np.clip(np.asarray(m0, float), 1e-9, 1 - 1e-9)
+    for it in range(max_iter):
+        gd = log_capital(d_side, m[act], +1, running_max, c)
+        gi = log_capital(i_side, m[act], -1, running_max, c)
+        h = gd - gi
+        right = h >= 0  # crossing is to the right of m: m becomes a
+        ai = act[right]
+        bi = act[~right]
+        a[ai], da[ai], ia[ai] = m[ai], gd[right], gi[right]
+        b[bi], db[bi], ib[bi] = m[bi], gd[~right], gi[~right]
+        # Illinois: halve the weight of an end that stays put twice in a row
+        new_ha = np.where(right, h, ha_w[act])
+        new_hb = np.where(~right, h, hb_w[act])
+        stay_b = right & (last[act] == 1)
+        stay_a = ~right & (last[act] == -1)
+        new_hb = np.where(stay_b, new_hb / 2, new_hb)
+        new_ha = np.where(stay_a, new_ha / 2, new_ha)
+        ha_w[act], hb_w[act] = new_ha, new_hb
+        last[act] = np.where(right, 1, -1)
+        lower = np.maximum(db[act], ia[act])
+        upper = np.minimum(da[act], ib[act])
+        done = (upper - lower <= tol) | (upper <= np.log(2.0)) | (b[act] - a[act] <= 1e-14)
+        out[act] = lower
+        keep = ~done
+        if not keep.any():
+            break
+        if keep.sum() < 0.75 * act.size:
+            # compact; otherwise finished groups ride along (their bracket only tightens)
+            kept = np.flatnonzero(keep)
+            d_side, i_side, act = d_side.take(kept), i_side.take(kept), act[kept]
+        # next point: false position where both end values are known, else bisection
+        aa, bb = a[act], b[act]
+        hw_a, hw_b = ha_w[act], hb_w[act]
+        fp = np.isfinite(hw_a) & np.isfinite(hw_b) & (hw_a - hw_b > 0) & (it % 4 != 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mf = aa + (bb - aa) * hw_a / (hw_a - hw_b)
+        mid = 0.5 * (aa + bb)
+        nxt = np.where(fp, mf, mid)
+        # stay strictly inside the bracket
+        eps = 1e-3 * (bb - aa)
+        m[act] = np.clip(nxt, aa + eps, bb - eps)
+    return out
+
+
+def _ragged_subset(r: Ragged, keep: np.ndarray) -> Ragged:
+    """The groups where ``keep`` is True, vectorised (no loop over groups)."""
+    sizes = r.sizes[keep]
+    return Ragged(r.values[np.repeat(keep, r.sizes)],
+                  np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+
+def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
+    return HypothesisSamples(
+        y_lo=samples.y_lo[keep], y_up=samples.y_up[keep], n=samples.n[keep],
+        follow=_ragged_subset(samples.follow, keep), twin=_ragged_subset(samples.twin, keep),
+    )
+
+
+def default_tune_alpha(h: int) -> float:
+    """0.05 / (2H): the Bonferroni level over the 2H one-sided hypotheses of a run."""
+    return 0.05 / (2 * max(int(h), 1))
+
+
+def betting_test(
+    samples: HypothesisSamples,
+    *,
+    tune_alpha: float | None = None,
+    seed: int = 0,
+    running_max: bool = True,
+    c: float = C_TRUNC,
+    tol: float = 1e-3,
+    max_iter: int = 100,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
+
+    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``tol``:
+    accuracy of log K* (p's relative accuracy), p is never understated.
+    """
+    h = len(samples)
+    p_lo, p_up = np.ones(h), np.ones(h)
+    ok = (samples.n > 0) & (samples.nhat > 0)
+    if not ok.any():
+        return p_lo, p_up
+    alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
+    if not 0 < alpha0 < 1:
+        raise ValueError(f"betting: tune_alpha must be in (0, 1), got {alpha0}")
+    sub = samples if ok.all() else _subset(samples, ok)
+    lo, up, tw = ordered_sides(sub, alpha0 / 2, seed=seed, c=c)
+    r = sub.width
+    q_lo = (sub.q_lo_hat - sub.y_lo) / r
+    q_up = (sub.q_up_hat - sub.y_lo) / r
+    q_tw = (sub.q_twin_hat - sub.y_lo) / r
+    with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
+        f_lo = pool.submit(_crossing, lo, tw, 0.5 * (q_lo + q_tw), running_max, c, tol, max_iter)
+        f_up = pool.submit(_crossing, tw, up, 0.5 * (q_up + q_tw), running_max, c, tol, max_iter)
+        k_lo, k_up = f_lo.result(), f_up.result()
+    p_lo[ok] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
+    p_up[ok] = np.minimum(1.0, 2.0 * np.exp(-k_up))
+    return p_lo, p_up
+
+
+def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: bool, c: float,
+           n_iter: int = 42) -> np.ndarray:
+    """sup{m : log max K+(m) >= level} (sign +1) or inf{m : log max K-(m) >= level} (sign -1)."""
+    g = len(side.offsets) - 1
+    a, b = np.zeros(g), np.ones(g)  # sign +1: K+ >= level holds at a, fails at b
+    for _ in range(n_iter):
+        mid = 0.5 * (a + b)
+        hit = log_capital(side, mid, sign, running_max, c) >= log_level
+        if sign > 0:
+            a, b = np.where(hit, mid, a), np.where(hit, b, mid)
+        else:
+            a, b = np.where(hit, a, mid), np.where(hit, mid, b)
+    return a if sign > 0 else b
+
+
+def betting_bounds(
+    samples: HypothesisSamples, alpha: float | np.ndarray, *, tune_alpha: float | None = None,
+    seed: int = 0, running_max: bool = True, c: float = C_TRUNC,
+) -> dict[str, np.ndarray]:
+    """One-sided (1 - alpha/2) bounds in outcome units, for the union rule at level alpha.
+
+    ``alpha``: a scalar or one level per hypothesis.
+    Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same order and
+    bets as :func:`betting_test` (same seed), so the rule on these bounds rejects at
+    alpha exactly when the p-value is <= alpha (up to the bisection's resolution).
+    Requires n > 0 and nhat > 0 for every hypothesis.
+    """
+    if np.any(samples.n == 0) or np.any(samples.nhat == 0):
+        raise ValueError("betting_bounds: every hypothesis needs n > 0 and nhat > 0")
+    h = len(samples)
+    alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
+    lo, up, tw = ordered_sides(samples, alpha0 / 2, seed=seed, c=c)
+    alpha = np.broadcast_to(np.asarray(alpha, float), (h,))
+    if np.any(~((alpha > 0) & (alpha <= 1))):
+        raise ValueError("betting_bounds: alpha must be in (0, 1]")
+    lev = np.log(2.0 / alpha)
+    r, y0 = samples.width, samples.y_lo
+    return {
+        "lower_lo": y0 + r * _bound(lo, lev, +1, running_max, c),
+        "upper_up": y0 + r * _bound(up, lev, -1, running_max, c),
+        "lower_twin": y0 + r * _bound(tw, lev, +1, running_max, c),
+        "upper_twin": y0 + r * _bound(tw, lev, -1, running_max, c),
+    }

@@ -1,0 +1,191 @@
+"""Failed twin runs in the tests: conservative (worst case) or dropped (the paper).
+
+A twin run that failed (init_failed, irreversible, timeout, error) at or before
+hour t of a hypothesis whose B_0 its X_0 lies in has no outcome: we do not know
+whether it would have entered B_1:t nor what it would have produced. Counted
+per hypothesis as F = n_failed (``bounds.twin_side``).
+
+- ``drop`` (the paper's behaviour, Cornish et al. 2026, Sec. 6: failed Pulse
+  runs are left out): the test sees only the nhat successful runs.
+- ``conservative`` (default): reject only if the test would reject whatever the
+  failed runs would have produced. Each failed run either fails B_1:t
+  (excluded from the twin sample) or enters with some outcome in
+  [y_lo, y_up]. For H_lo: Q_twin >= Q_lo the test rejects when the twin mean
+  is low, so among the outcomes a failed run could take the least favourable
+  to rejection is y_up; for H_up it is y_lo. With k of the F failed runs
+  entering (k = 0..F, k = 0 is ``drop``),
+
+      p_cons = max_{k = 0..F} p(twin sample + k copies of the least favourable value).
+
+  Why this is the worst case over all completions: for the Hoeffding p-value
+  (and any test whose p-value is non-increasing in the distance
+  Qhat_lo - Qhat_twin at fixed sample sizes) moving an entering failed run's
+  value to y_up can only raise p_lo, so for each k the worst completion puts
+  every entering failed run at y_up; what is left is the maximum over k.
+  The tests' validity then holds for every completion, in particular the true
+  one (assuming the successful runs are i.i.d. draws of the runs the twin
+  would produce; failures need not be at random).
+
+Evaluation. Hoeffding's p (``inference.hoeffding``) is a closed form, so it is
+evaluated at every k = 0..F and the maximum is exact. For any other method
+(bootstrap, betting, ... from ``inference.registry``) each k costs a full
+evaluation, so ``conservative_pvalues`` evaluates k = 0, k = F and the k that
+maximises the Hoeffding p-value (plus ``extra_points`` evenly spaced k) and
+takes the maximum. That maximum is always >= the drop p-value (k = 0 is
+included) but it is exact only when the method's p(k) peaks at one of those
+points: it does when p(k) is monotone in k (k = 0 or k = F: the usual case,
+adding y_up both moves the mean against rejection and narrows the interval)
+or follows Hoeffding's shape (Hoeffding-argmax); an interior peak elsewhere is
+possible in principle for resampling methods and would be missed. Pass
+``extra_points`` to search a grid when that matters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+
+from twinfalsify.inference.hoeffding import hoeffding_pvalue, hoeffding_test
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+
+Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
+MODES = ("conservative", "drop")
+_MAX_CELLS = 5_000_000  # (hypothesis, k) pairs per vectorised Hoeffding chunk
+
+
+def augment(samples: HypothesisSamples, k: np.ndarray, value: np.ndarray) -> HypothesisSamples:
+    """The samples with k[h] extra twin outcomes equal to value[h] in hypothesis h."""
+    k = np.asarray(k, dtype=np.int64)
+    if k.shape != (len(samples),) or (k < 0).any():
+        raise ValueError(f"augment: k must be {len(samples)} non-negative counts")
+    groups = [
+        np.concatenate([samples.twin.group(h), np.full(int(k[h]), float(value[h]))])
+        for h in range(len(samples))
+    ]
+    return HypothesisSamples(
+        y_lo=samples.y_lo, y_up=samples.y_up, n=samples.n, follow=samples.follow,
+        twin=Ragged.from_groups(groups),
+    )  # fmt: skip
+
+
+def hoeffding_factor(method: Method) -> float | None:
+    """The constant c if ``method`` is the closed-form Hoeffding test, else None."""
+    if method is hoeffding_test:
+        return 2.0
+    if isinstance(method, partial) and method.func is hoeffding_test and not method.args:
+        return float(method.keywords.get("factor", 2.0))
+    return None
+
+
+def hoeffding_worst_k(
+    samples: HypothesisSamples, n_failed: np.ndarray, factor: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(p_lo, p_up, k_lo, k_up): max over k = 0..F of Hoeffding's p, and the maximising k.
+
+    Side lo adds k outcomes y_up to the twin sample (mean (S + k y_up)/(nhat + k)),
+    side up adds k outcomes y_lo; S = sum of the clipped twin outcomes. Exact:
+    every k is evaluated (the p-value is a closed form, see inference.hoeffding).
+    Ties go to the smallest k.
+    """
+    f = np.asarray(n_failed, dtype=np.int64)
+    h_total = len(samples)
+    if f.shape != (h_total,) or (f < 0).any():
+        raise ValueError(f"n_failed must be {h_total} non-negative counts, got shape {f.shape}")
+    s = samples.twin_f.sums()
+    nhat = samples.nhat.astype(float)
+    q_lo, q_up, width, n = samples.q_lo_hat, samples.q_up_hat, samples.width, samples.n
+    out = {
+        "p_lo": np.ones(h_total), "p_up": np.ones(h_total),
+        "k_lo": np.zeros(h_total, np.int64), "k_up": np.zeros(h_total, np.int64),
+    }  # fmt: skip
+    if h_total == 0:
+        return out["p_lo"], out["p_up"], out["k_lo"], out["k_up"]
+    cum = np.cumsum(f + 1)
+    cuts = np.searchsorted(cum, np.arange(_MAX_CELLS, cum[-1], _MAX_CELLS), side="right")
+    for idx in np.split(np.arange(h_total), np.unique(cuts[(cuts > 0) & (cuts < h_total)])):
+        reps = f[idx] + 1
+        hh = np.repeat(idx, reps)
+        offs = np.concatenate([[0], np.cumsum(reps)])
+        kk = np.arange(offs[-1]) - np.repeat(offs[:-1], reps)
+        m = nhat[hh] + kk
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_lo = (s[hh] + kk * samples.y_up[hh]) / m
+            mean_up = (s[hh] + kk * samples.y_lo[hh]) / m
+        p_lo = hoeffding_pvalue(q_lo[hh] - mean_lo, width[hh], n[hh], m, factor)
+        p_up = hoeffding_pvalue(mean_up - q_up[hh], width[hh], n[hh], m, factor)
+        for p, name in ((p_lo, "lo"), (p_up, "up")):
+            best = np.maximum.reduceat(p, offs[:-1])
+            hit = p == np.repeat(best, reps)  # first k reaching the maximum
+            first = np.minimum.reduceat(np.where(hit, kk, np.iinfo(np.int64).max), offs[:-1])
+            out[f"p_{name}"][idx] = best
+            out[f"k_{name}"][idx] = first
+    return out["p_lo"], out["p_up"], out["k_lo"], out["k_up"]
+
+
+def conservative_pvalues(
+    method: Method,
+    samples: HypothesisSamples,
+    n_failed: np.ndarray,
+    *,
+    extra_points: int = 0,
+    base: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Worst case over the failed runs: (p_lo, p_up) = max over k of p(sample + k values).
+
+    method: any test ``samples -> (p_lo, p_up)``. base: the method's p-values
+    on ``samples`` (k = 0) if already computed. Exact for the Hoeffding test
+    (every k); for other methods k in {0, F, Hoeffding-argmax} plus
+    ``extra_points`` evenly spaced k (see the module docstring). Always
+    >= the drop-failures p-values.
+    """
+    f = np.asarray(n_failed, dtype=np.int64)
+    if f.shape != (len(samples),) or (f < 0).any():
+        raise ValueError(f"n_failed must be {len(samples)} non-negative counts")
+    factor = hoeffding_factor(method)
+    if factor is not None:
+        p_lo, p_up, _, _ = hoeffding_worst_k(samples, f, factor)
+        return p_lo, p_up
+    p0_lo, p0_up = base if base is not None else method(samples)
+    p_lo, p_up = np.asarray(p0_lo, float).copy(), np.asarray(p0_up, float).copy()
+    idx = np.flatnonzero(f > 0)
+    if idx.size == 0:
+        return p_lo, p_up
+    sub = samples.take(idx)
+    fs = f[idx]
+    _, _, k_lo, k_up = hoeffding_worst_k(sub, fs)
+    candidates_lo = [fs, k_lo]
+    candidates_up = [fs, k_up]
+    for j in range(1, extra_points + 1):
+        kj = np.round(fs * j / (extra_points + 1)).astype(np.int64)
+        candidates_lo.append(kj)
+        candidates_up.append(kj)
+    for k in _unique_rows(candidates_lo):
+        p_lo[idx] = np.maximum(p_lo[idx], method(augment(sub, k, sub.y_up))[0])
+    for k in _unique_rows(candidates_up):
+        p_up[idx] = np.maximum(p_up[idx], method(augment(sub, k, sub.y_lo))[1])
+    return p_lo, p_up
+
+
+def _unique_rows(rows: list[np.ndarray]) -> list[np.ndarray]:
+    out: list[np.ndarray] = []
+    for r in rows:
+        if not any(np.array_equal(r, o) for o in out):
+            out.append(r)
+    return out
+
+
+def failure_pvalues(
+    method: Method,
+    samples: HypothesisSamples,
+    n_failed: np.ndarray,
+    mode: str = "conservative",
+    **kwargs,
+) -> tuple[np.ndarray, np.ndarray]:
+    """p-values under the chosen handling of failed runs (``MODES``)."""
+    if mode == "drop":
+        return method(samples)
+    if mode == "conservative":
+        return conservative_pvalues(method, samples, n_failed, **kwargs)
+    raise ValueError(f"testing.failed_runs: unknown mode {mode!r}; choose one of {MODES}")

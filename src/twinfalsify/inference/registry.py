@@ -1,0 +1,51 @@
+"""Test methods by name, as the config's ``testing.methods`` names them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+from typing import Any
+
+import numpy as np
+
+from twinfalsify.inference.samples import HypothesisSamples
+from twinfalsify.schema import ContractError
+
+Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
+
+# name -> (import path, options accepted, whether the method takes a seed)
+METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
+    "hoeffding": ("twinfalsify.inference.hoeffding:hoeffding_test", ("factor",), False),
+    "bootstrap": (
+        "twinfalsify.inference.bootstrap:bootstrap_test",
+        ("n_resamples", "min_n", "kind", "variant"),
+        True,
+    ),
+    "betting": (
+        "twinfalsify.inference.betting:betting_test",
+        ("tune_alpha", "running_max", "c", "tol", "max_iter"),
+        True,
+    ),
+    "bernstein": ("twinfalsify.inference.bernstein:bernstein_test", (), False),
+}
+
+
+def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
+    """The method ``name`` with its options bound; unknown names/options are config errors."""
+    if name not in METHODS:
+        raise ContractError(
+            f"testing.methods: unknown method {name!r}; choose from {', '.join(METHODS)}"
+        )
+    target, allowed, seeded = METHODS[name]
+    opts = dict(opts or {})
+    unknown = set(opts) - set(allowed)
+    if unknown:
+        raise ContractError(
+            f"testing.methods.{name}: unknown option(s) {sorted(unknown)}; "
+            f"allowed: {', '.join(allowed) or 'none'}"
+        )
+    module, func = target.split(":")
+    fn = getattr(__import__(module, fromlist=[func]), func)
+    if seeded:
+        opts["seed"] = int(seed)
+    return partial(fn, **opts)

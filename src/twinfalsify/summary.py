@@ -1,0 +1,438 @@
+"""Data behind the figures and the study summary, recomputed from a study's results folder.
+
+Everything here reads the files a study has written (results/<study>/...) and calls the
+library (design, bounds, inference) rather than reimplementing it, so a figure shows exactly
+what the tests stage tested.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify import bounds
+from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes, state_codes
+from twinfalsify.inference.hoeffding import hoeffding_radius
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.io import read_json, read_parquet
+from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
+from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame
+
+
+@dataclass(frozen=True)
+class StudyTwin:
+    """One twin of one study, loaded as the tests stage sees it."""
+
+    hyps: pd.DataFrame
+    samples: HypothesisSamples
+    results: pd.DataFrame
+    d0: pd.DataFrame
+    d: pd.DataFrame
+    actions: ActionBins
+    states: StateBins
+    nodes: bounds.TwinNodes
+
+
+def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
+    """Load the inputs of one twin's tests and rebuild its HypothesisSamples.
+
+    paths: keys d0, d, actions, bins, hypotheses, counts, follow, plan, runs, results.
+    The samples are rebuilt with the same library calls as the tests rule, so the
+    statistics recomputed here equal the results table's (checked by the tests).
+    """
+    missing = {"d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan", "runs",
+               "results"} - set(paths)  # fmt: skip
+    if missing:
+        raise ContractError(f"load_study_twin: missing input path(s) {sorted(missing)}")
+    hyps = read_parquet(paths["hypotheses"], "hypotheses")
+    counts = read_parquet(paths["counts"], "observational counts")
+    follow = read_parquet(paths["follow"], "follower outcomes")
+    d = read_parquet(paths["d"], "D")
+    plan = TwinPlan.from_json(read_json(paths["plan"]))
+    states = StateBins.from_json(read_json(paths["bins"]))
+    nodes = load_nodes(
+        read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids)
+    )
+    obs = bounds.ObservationalSide(
+        n=counts["n"].to_numpy(),
+        follow=Ragged.from_grouped(
+            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
+        ),
+    )
+    twin, _ = bounds.twin_side(hyps, nodes, states)
+    return StudyTwin(
+        hyps=hyps,
+        samples=bounds.hypothesis_samples(hyps, obs, twin),
+        results=read_parquet(paths["results"], "results"),
+        d0=read_parquet(paths["d0"], "D0"),
+        d=d,
+        actions=ActionBins.from_json(read_json(paths["actions"])),
+        states=states,
+        nodes=nodes,
+    )
+
+
+# -- choosing what to show -------------------------------------------------------------------
+
+
+def rejected_any(results: pd.DataFrame, method: str | None = None) -> pd.DataFrame:
+    """Per hypothesis: min p over sides (and methods, or the given one), rejected on any side."""
+    sub = results if method is None else results[results["method"] == method]
+    if sub.empty:
+        raise ContractError(f"results: no rows for method {method!r}")
+    return (
+        sub.groupby("hyp_id")
+        .agg(
+            p_min=("p_value", "min"),
+            rejected=("rejected", "any"),
+            t=("t", "first"),
+            kind=("kind", "first"),
+            outcome=("outcome", "first"),
+            n=("n", "first"),
+            nhat=("nhat", "first"),
+        )  # fmt: skip
+        .reset_index()
+    )
+
+
+def pick_hypothesis(
+    results: pd.DataFrame,
+    *,
+    rejected: bool = True,
+    kind: str = "causal",
+    outcome: str | None = None,
+    prefer_long: bool = True,
+    exclude: tuple[int, ...] = (),
+) -> int:
+    """hyp_id to illustrate: a rejected (or a clearly non-rejected, testable) hypothesis.
+
+    Rejected: the longest horizon t first (``prefer_long``), then the smallest p-value.
+    Not rejected: among testable ones (n > 0, nhat > 0), the largest p-value and sample
+    sizes, so the picture shows a twin inside its bounds with data behind it. Search order:
+    the wanted state in ``kind``, then in any kind, then the other state (a correct twin has
+    no rejection): the figure reads the hypothesis's own rejection to title it honestly.
+    """
+    per = rejected_any(results)
+    per = per[~per["hyp_id"].isin(list(exclude))]
+    if outcome is not None:
+        if outcome not in set(per["outcome"]):
+            raise ContractError(f"figures: outcome {outcome!r} has no hypothesis in the results")
+        per = per[per["outcome"] == outcome]
+    testable = per[(per["n"] > 0) & (per["nhat"] > 0)]
+    if testable.empty:
+        raise ContractError("figures: no testable hypothesis (every one has n = 0 or nhat = 0)")
+    in_kind = testable[testable["kind"] == kind]
+    for pool in (in_kind[in_kind["rejected"] == rejected],
+                 testable[testable["rejected"] == rejected], in_kind, testable):  # fmt: skip
+        if len(pool):
+            want = pool
+            break
+    if rejected:
+        keys = (["t"] if prefer_long else []) + ["p_min", "n"]
+        asc = ([False] if prefer_long else []) + [True, False]
+    else:
+        want = want.assign(size=np.minimum(want["n"], want["nhat"]))
+        keys, asc = ["p_min", "t", "size"], [False, False, False]
+    return int(want.sort_values(keys + ["hyp_id"], ascending=asc + [True]).iloc[0]["hyp_id"])
+
+
+def extend_to_horizon(results: pd.DataFrame, hyps: pd.DataFrame, hyp_id: int) -> int:
+    """The hypothesis of the longest horizon whose (a, B) prefix is hyp_id's, same outcome and
+    kind (smallest p-value among those), so a longitudinal figure of a rejection at t < T still
+    spans t = 1..T and passes through the rejected step; hyp_id itself if none is longer."""
+    row = hyps.loc[hyps["hyp_id"] == hyp_id]
+    if row.empty:
+        raise ContractError(f"figures: hyp_id {hyp_id} is not in the hypotheses table")
+    row = row.iloc[0]
+    t = int(row["t"])
+    a, b = [int(v) for v in row["actions"]], [int(v) for v in row["bins"]]
+    cand = hyps[(hyps["outcome"] == row["outcome"]) & (hyps["kind"] == row["kind"])
+                & (hyps["t"] > t)]  # fmt: skip
+    ok = [
+        int(h) for h, aa, bb in zip(cand["hyp_id"], cand["actions"], cand["bins"], strict=True)
+        if [int(v) for v in aa[:t]] == a and [int(v) for v in bb[: t + 1]] == b
+    ]  # fmt: skip
+    if not ok:
+        return int(hyp_id)
+    per = rejected_any(results[results["hyp_id"].isin(ok)])
+    per = per[(per["n"] > 0) & (per["nhat"] > 0)]
+    if per.empty:
+        return int(hyp_id)
+    return int(per.sort_values(["t", "p_min", "hyp_id"], ascending=[False, True, True])
+               .iloc[0]["hyp_id"])  # fmt: skip
+
+
+# -- longitudinal bounds (the paper's HCO3 figure) ----------------------------------------------
+
+
+def _d0_range(
+    d0x: np.ndarray,
+    d0a: np.ndarray,
+    states: StateBins,
+    outcome: str,
+    seq,
+    bset,
+    quantiles: tuple[float, float],
+) -> tuple[float, float, int]:
+    """Design rule for (a_1:s, B_0:s): quantiles of X_s[k] over D0 trajectories that follow
+    a_1:s and stay in B_0:s (design.build_hypotheses); fallback: all of D0 at s."""
+    s = len(seq)
+    codes = state_codes(d0x, states, outcome)
+    keep = (d0a[:, :s] == np.asarray(seq)[None, :]).all(axis=1)
+    b = np.asarray(bset)
+    keep &= ((codes[:, : s + 1] == b[None, :]) | (b[None, :] == WHOLE_SPACE)).all(axis=1)
+    y = d0x[:, s, FEATURES.index(outcome)]
+    sub = y[keep]
+    if len(sub) >= 2:
+        lo, up = np.quantile(sub, quantiles)
+        if up > lo:
+            return float(lo), float(up), int(keep.sum())
+    lo, up = np.quantile(y, quantiles)
+    return float(lo), float(up), int(keep.sum())
+
+
+def longitudinal_frame(
+    st: StudyTwin, hyp_id: int, alpha: float = 0.05, quantiles: tuple[float, float] = (0.2, 0.8)
+) -> pd.DataFrame:
+    """Bounds, twin mean and naive mean for every prefix s = 1..t of one hypothesis.
+
+    For s = 1..t the parameter set (k, s, a_1:s, B_0:s) gets y_lo, y_up by the design's
+    rule on D0 (the hypothesis's own values at s = t), then the library computes both
+    sides on D. Intervals are one-sided (1 - alpha/2) Hoeffding radii,
+    R sqrt(log(2/alpha) / (2 m)) with m = n (bounds), nhat (twin) or n_follow (naive),
+    unadjusted for multiplicity (Hoeffding 1963; Cornish et al. 2026, Proposition).
+    """
+    row = st.hyps.loc[st.hyps["hyp_id"] == hyp_id]
+    if row.empty:
+        raise ContractError(f"figures: hyp_id {hyp_id} is not in the hypotheses table")
+    row = row.iloc[0]
+    outcome, t = row["outcome"], int(row["t"])
+    seq, bset = [int(a) for a in row["actions"]], [int(b) for b in row["bins"]]
+    d0x = to_array(st.d0, FEATURES, T_MAX)
+    d0a = action_codes(st.d0, st.actions, T_MAX)
+    rows = []
+    for s in range(1, t + 1):
+        if s == t:
+            lo, up, support = float(row["y_lo"]), float(row["y_up"]), int(row.get("support", 0))
+        else:
+            lo, up, support = _d0_range(d0x, d0a, st.states, outcome, seq[:s], bset[: s + 1],
+                                        quantiles)  # fmt: skip
+        rows.append({"hyp_id": s, "outcome": outcome, "t": s, "actions": seq[:s],
+                     "bins": bset[: s + 1], "y_lo": lo, "y_up": up,
+                     "support": support})  # fmt: skip
+    hyps = pd.DataFrame(rows)
+    dx = to_array(st.d, FEATURES, T_MAX)
+    da = action_codes(st.d, st.actions, T_MAX)
+    obs = bounds.observational_side(hyps, dx, da, st.states)
+    twin, n_failed = bounds.twin_side(hyps, st.nodes, st.states)
+    smp = bounds.hypothesis_samples(hyps, obs, twin)
+    w = smp.width
+    out = hyps.drop(columns=["hyp_id"]).assign(
+        n=smp.n, n_follow=smp.n_follow, nhat=smp.nhat, n_failed=n_failed,
+        q_lo_hat=smp.q_lo_hat, q_up_hat=smp.q_up_hat, q_twin_hat=smp.q_twin_hat,
+        q_obs_hat=smp.q_obs_hat, propensity=smp.propensity,
+        r_bound=hoeffding_radius(w, smp.n, alpha), r_twin=hoeffding_radius(w, smp.nhat, alpha),
+        r_obs=hoeffding_radius(w, smp.n_follow, alpha),
+    )  # fmt: skip
+    out["source_hyp_id"] = hyp_id
+    return out
+
+
+def histogram_data(st: StudyTwin, hyp_id: int, alpha: float = 0.05) -> dict:
+    """Raw outcomes of one hypothesis (followers in D, entering twin runs) and its intervals.
+
+    Intervals: [Qhat_lo - r(n), Qhat_up + r(n)] for the bounds and Qhat_twin +- r(nhat),
+    r(m) = R sqrt(log(2/alpha) / (2 m)) (one-sided 1 - alpha/2 Hoeffding, unadjusted).
+    """
+    pos = np.flatnonzero(st.hyps["hyp_id"].to_numpy() == hyp_id)
+    if len(pos) != 1:
+        raise ContractError(f"figures: hyp_id {hyp_id} is not (once) in the hypotheses table")
+    h = int(pos[0])
+    smp = st.samples
+    row = st.hyps.iloc[h]
+    res = st.results[st.results["hyp_id"] == hyp_id]
+    w = smp.width[h]
+    return {
+        "hyp_id": int(hyp_id), "outcome": row["outcome"], "t": int(row["t"]),
+        "actions": [int(a) for a in row["actions"]], "bins": [int(b) for b in row["bins"]],
+        "y_lo": float(smp.y_lo[h]), "y_up": float(smp.y_up[h]),
+        "obs": smp.follow.group(h).copy(), "twin": smp.twin.group(h).copy(),
+        "n": int(smp.n[h]), "nhat": int(smp.nhat[h]),
+        "q_lo_hat": float(smp.q_lo_hat[h]), "q_up_hat": float(smp.q_up_hat[h]),
+        "q_twin_hat": float(smp.q_twin_hat[h]),
+        "r_bound": float(hoeffding_radius(w, smp.n[h], alpha)),
+        "r_twin": float(hoeffding_radius(w, smp.nhat[h], alpha)),
+        "rejected": bool(res["rejected"].any()),
+        "p_min": float(res["p_value"].min()) if len(res) else 1.0,
+    }  # fmt: skip
+
+
+# -- confounding illustration (synthetic world only) -------------------------------------------
+
+
+def confounding_frame(
+    d: pd.DataFrame, world, actions: ActionBins, outcome: str = "MeanBP", seed: int = 0
+) -> pd.DataFrame:
+    """Per action a at hour 1: outcome X_1[k] observed among those who took a, and under
+    do(A_1 = a) for everyone in D (the world's exact interventional law, twin dose = bin
+    median). Long table: action, which (observed | everyone), value.
+
+    The gap between the two is confounding bias: E[X_1 | A_1 = a] != E[X_1(a)] because the
+    unmeasured severity drives both the dose and the response (Cornish et al. 2026, Sec. 2).
+    """
+    from twinfalsify.twins import noise
+
+    if outcome not in FEATURES:
+        raise ContractError(f"figures.confounding.outcome: unknown feature {outcome!r}")
+    x = to_array(d, FEATURES, T_MAX)
+    a = action_codes(d, actions, T_MAX)[:, 0]
+    x0 = d[d["t"] == 0].sort_values("stay_id")
+    stay = x0["stay_id"].to_numpy(np.uint64)
+    x0f = x0[list(FEATURES)].reset_index(drop=True)
+    k = FEATURES.index(outcome)
+    seeds = noise.combine(np.uint64(seed), stay)
+    parts = []
+    for code in np.unique(a):
+        took = a == code
+        parts.append(pd.DataFrame({"action": int(code), "which": "observed",
+                                   "value": x[took, 1, k]}))  # fmt: skip
+        doses = np.broadcast_to(actions.doses(np.array([code])), (len(x0f), 1, 2)).copy()
+        sim = world.simulate_interventional(x0f, doses, seeds)
+        parts.append(pd.DataFrame({"action": int(code), "which": "everyone",
+                                   "value": sim[:, 0, k]}))  # fmt: skip
+    return pd.concat(parts, ignore_index=True)
+
+
+# -- study summary -----------------------------------------------------------------------------
+
+
+def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
+    """Share of twin X_0 whose initial state was clamped, per feature.
+
+    The ``clamped`` column holds JSON ``{feature: [given, used]}`` (empty for none); clamps
+    are applied once at initialisation, so a stay counts once (any of its rows).
+    """
+    if "clamped" not in runs:
+        raise ContractError("twin runs: column 'clamped' missing")
+    n_x0 = runs["init_stay_id"].nunique()
+    hits: dict[str, set] = {}
+    for stay, text in zip(runs["init_stay_id"].to_numpy(), runs["clamped"].to_numpy(), strict=True):
+        if not text or text in ("{}", "null"):
+            continue
+        try:
+            data = json.loads(text) if isinstance(text, str) else dict(text)
+        except (TypeError, ValueError) as exc:
+            raise ContractError(
+                f"twin runs: column 'clamped' is not JSON ({exc}): {text!r}"
+            ) from None
+        for feat in data or {}:
+            hits.setdefault(feat, set()).add(int(stay))
+    rows = [{"feature": f, "x0_clamped": len(s), "share": len(s) / max(n_x0, 1)}
+            for f, s in sorted(hits.items())]  # fmt: skip
+    return pd.DataFrame(rows, columns=["feature", "x0_clamped", "share"])
+
+
+def _md(df: pd.DataFrame) -> str:
+    """A small DataFrame as a GitHub Markdown table (no extra dependency)."""
+    cols = [str(c) for c in df.columns]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for row in df.itertuples(index=False):
+        cells = [f"{v:.3g}" if isinstance(v, float) else str(v) for v in row]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def study_summary(
+    study: str,
+    d0: pd.DataFrame,
+    d: pd.DataFrame,
+    hyps: pd.DataFrame,
+    twins: Mapping[str, Mapping[str, pd.DataFrame]],
+    trajectories_stays: int | None = None,
+) -> dict[str, pd.DataFrame]:
+    """Tables of the study summary. twins: name -> {"runs": ..., "results": ...}.
+
+    Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
+    clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
+    untestable (parameter sets with n = 0 or nhat = 0, per twin and kind).
+    """
+    n_d0, n_d = d0["stay_id"].nunique(), d["stay_id"].nunique()
+    cohort = pd.DataFrame({
+        "what": ["cohort (stays)", "D0 (design)", "D (test)"],
+        "count": [trajectories_stays if trajectories_stays is not None else n_d0 + n_d, n_d0, n_d],
+    })  # fmt: skip
+    hyp = hyps.groupby("kind").agg(parameter_sets=("hyp_id", "size")).reset_index()
+    hyp["hypotheses"] = 2 * hyp["parameter_sets"]
+    runs_rows, clamp_rows, rej_rows, unt_rows = [], [], [], []
+    for name, parts in twins.items():
+        runs, res = parts["runs"], parts["results"]
+        counts = runs.groupby(["t", "status"]).size().rename("rows").reset_index()
+        counts.insert(0, "twin", name)
+        runs_rows.append(counts)
+        cl = clamp_shares(runs)
+        cl.insert(0, "twin", name)
+        clamp_rows.append(cl)
+        g = res.groupby(["method", "kind"])
+        rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum()}).reset_index()
+        rej.insert(0, "twin", name)
+        rej_rows.append(rej)
+        first = res.drop_duplicates("hyp_id")
+        unt = first.assign(untestable=(first["n"] == 0) | (first["nhat"] == 0),
+                           n_zero=first["n"] == 0, nhat_zero=first["nhat"] == 0)  # fmt: skip
+        u = unt.groupby("kind")[["untestable", "n_zero", "nhat_zero"]].sum().reset_index()
+        u.insert(0, "twin", name)
+        unt_rows.append(u)
+
+    def cat(frames, cols):
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=cols)
+
+    return {
+        "cohort": cohort,
+        "hypotheses": hyp,
+        "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
+        "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
+        "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected"]),
+        "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
+    }
+
+
+_TITLES = {
+    "cohort": "Cohort and split",
+    "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
+    "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
+    "clamps": "Share of twin initial states clamped, per feature",
+    "rejections": "Rejections per twin, method and kind (after correction)",
+    "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
+}
+
+
+def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
+    out = [f"# Study `{study}`: summary", ""]
+    for key, title in _TITLES.items():
+        df = tables[key]
+        out += [f"## {title}", "", _md(df) if len(df) else "_none_", ""]
+    return "\n".join(out)
+
+
+def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
+    style = ("body{font-family:sans-serif;margin:1.5em;max-width:60em}"
+             "table{border-collapse:collapse;margin-bottom:1.2em}"
+             "td,th{border:1px solid #bbb;padding:.25em .6em;text-align:right}"
+             "th{background:#eef}")  # fmt: skip
+    out = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
+        f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
+    ]
+    for key, title in _TITLES.items():
+        df = tables[key]
+        body = (
+            df.to_html(index=False, float_format=lambda v: f"{v:.3g}") if len(df) else "<p>none</p>"
+        )
+        out.append(f"<h2>{title}</h2>{body}")
+    out.append("</body></html>")
+    return "\n".join(out)

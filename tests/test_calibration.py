@@ -1,0 +1,173 @@
+"""Calibration harness: building blocks checked against independent computations,
+and a tiny end-to-end run with known answers."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from twinfalsify import calibration as cal
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.schema import OUTCOMES, ContractError
+from twinfalsify.twins import plan as tp
+from twinfalsify.twins.builtin import BiasedTwin
+
+TINY = dict(
+    replicates=4,
+    chunks=2,
+    n_stays=1000,
+    d0_fraction=0.2,
+    min_support=10,
+    runs_per_sequence=150,
+    methods={"hoeffding": {}, "bootstrap": {"n_resamples": 50}, "betting": {}, "bernstein": {}},
+    bias_sizes=[0.0, 8.0],
+    coverage_per_replicate=2,
+    coverage_population=15_000,
+    coverage_min_inside=100,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_cfg() -> cal.CalibrationConfig:
+    return cal.CalibrationConfig.from_dict(TINY)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_cfg):
+    return cal.run_replicates(tiny_cfg, list(range(tiny_cfg.replicates)))
+
+
+def test_shifted_nodes_equal_the_biased_twin(tiny_cfg):
+    """Deriving a biased twin from the oracle's runs = running BiasedTwin(shift=...) itself."""
+    rep = cal.build_replicate(tiny_cfg, tiny_cfg.replicate_seed(0))
+    bias, feats = 0.7, ("HR", "Sodium", "Arterial_pH")
+    derived = cal.shifted_nodes(rep, bias, feats)
+    twin = BiasedTwin(rep.world, shift={k: bias * rep.outcome_sd[k] for k in feats})
+    runs = tp.run_shard(twin, rep.plan, 0, rep.x0, rep.actions, log=io.StringIO())
+    direct = tp.load_nodes(runs, rep.plan, rep.x0)
+    assert derived.index == direct.index
+    np.testing.assert_allclose(derived.values, direct.values, rtol=0, atol=1e-9)
+    assert not np.allclose(derived.values, rep.nodes.values)  # the shift did something
+    assert cal.shifted_nodes(rep, 0.0, feats) is rep.nodes
+
+
+def test_welch_pvalues_match_scipy_per_hypothesis():
+    rng = np.random.default_rng(3)
+    follow = [rng.normal(0, 1, n) for n in (5, 30, 1, 12, 40)]
+    twin = [rng.normal(0.5, 2, n) for n in (8, 25, 10, 0, 40)]
+    twin[4] = np.full(40, 0.3)
+    follow[4] = np.full(40, 0.3)  # both constant and equal: undefined -> 1
+    s = HypothesisSamples(
+        y_lo=np.full(5, -10.0), y_up=np.full(5, 10.0), n=np.array([9, 40, 3, 20, 50]),
+        follow=Ragged.from_groups(follow), twin=Ragged.from_groups(twin),
+    )  # fmt: skip
+    p = cal.welch_pvalues(s)
+    for h in (0, 1):
+        want = stats.ttest_ind(twin[h], follow[h], equal_var=False).pvalue
+        assert p[h] == pytest.approx(want, rel=1e-9)
+    assert p[2] == 1 and p[3] == 1 and p[4] == 1  # < 2 values, or zero variance
+
+
+def test_summarise_rates_and_clopper_pearson_intervals():
+    tests = pd.DataFrame({
+        "replicate": np.arange(20), "bias": 0.0, "method": "hoeffding", "kind": "causal",
+        "n_tests": 10, "n_testable": 10, "n_rejected": [1] * 3 + [0] * 17,
+    })  # fmt: skip
+    tests["any_rejected"] = tests["n_rejected"] > 0
+    row = cal.summarise(tests).iloc[0]
+    ci = stats.binomtest(3, 20).proportion_ci(0.95, method="exact")
+    assert row["any_rejection_rate"] == pytest.approx(0.15)
+    assert (row["ci_low"], row["ci_high"]) == pytest.approx((ci.low, ci.high))
+    assert row["mean_share_rejected"] == pytest.approx(0.015)
+    assert row["valid"]  # CI [0.03, 0.38] reaches below 0.05
+    tests["n_rejected"] = [1] * 12 + [0] * 8  # 60 %: whole CI above 0.05 -> fails
+    tests["any_rejected"] = tests["n_rejected"] > 0
+    assert not cal.summarise(tests).iloc[0]["valid"]
+
+
+def test_dominance_compares_paired_rates():
+    rows = []
+    for method, rej in (("betting", [2, 5]), ("hoeffding", [1, 6])):
+        for bias, k in zip((1.0, 2.0), rej, strict=True):
+            rows.append(dict(method=method, kind="manski", bias=bias, mean_rejections=float(k),
+                             any_rejection_rate=1.0))  # fmt: skip
+    dom = cal.dominance(pd.DataFrame(rows))
+    assert dom.set_index("bias")["at_least_as_often"].to_dict() == {1.0: True, 2.0: False}
+
+
+def test_chunks_partition_the_replicates_and_seeds_do_not_depend_on_chunking(tiny_cfg):
+    got = sorted(r for c in range(tiny_cfg.chunks) for r in cal.chunk_replicates(tiny_cfg, c))
+    assert got == list(range(tiny_cfg.replicates))
+    other = cal.CalibrationConfig.from_dict({**TINY, "chunks": 3})
+    assert [other.replicate_seed(r) for r in range(4)] == [
+        tiny_cfg.replicate_seed(r) for r in range(4)
+    ]
+    assert len({tiny_cfg.replicate_seed(r) for r in range(100)}) == 100
+    with pytest.raises(ContractError, match="chunk 2 out of range"):
+        cal.chunk_replicates(tiny_cfg, 2)
+
+
+@pytest.mark.parametrize(
+    ("patch", "message"),
+    [
+        ({"bogus": 1}, "unknown key"),
+        ({"bias_sizes": [1.0, 2.0]}, "bias_sizes must include 0"),
+        ({"bias_features": ["HR", "Spleen"]}, "Spleen"),
+        ({"adaptive": True}, "inference.sequential"),
+        ({"d0_fraction": 1.5}, "d0_fraction"),
+    ],
+)
+def test_bad_config_names_file_and_key(tmp_path, patch, message):
+    import yaml
+
+    path = tmp_path / "calibration.yaml"
+    path.write_text(yaml.safe_dump({**TINY, **patch}))
+    with pytest.raises(ContractError, match=message) as err:
+        cal.load_config(str(path))
+    assert str(path) in str(err.value)
+
+
+def test_tiny_run_tables_and_known_answers(tiny_run, tiny_cfg):
+    tests, cov, wid = tiny_run["tests"], tiny_run["coverage"], tiny_run["widths"]
+    assert tuple(tests.columns) == cal.TEST_COLUMNS
+    assert tuple(cov.columns) == cal.COVERAGE_COLUMNS
+    assert tuple(wid.columns) == cal.WIDTH_COLUMNS
+    methods = set(tiny_cfg.methods) | {cal.NAIVE}
+    # every replicate x bias x method x kind present exactly once
+    assert len(tests) == 4 * 2 * len(methods) * 2
+    assert not tests.duplicated(["replicate", "bias", "method", "kind"]).any()
+    summary = cal.summarise(tests)
+    assert summary["any_rejection_rate"].between(0, 1).all()
+    oracle = summary[(summary["bias"] == 0) & summary["method"].isin(cal.EXACT_METHODS)]
+    assert (oracle["mean_rejections"] == 0).all()  # no exact method rejects the oracle
+    # a huge bias (8 SDs on every outcome) is found by every method on the Manski family
+    huge = summary[(summary["bias"] == 8.0) & (summary["kind"] == "manski")]
+    assert set(huge["method"]) == methods
+    assert (huge["any_rejection_rate"] == 1).all()
+    # the pitfall: the naive comparison rejects the correct (oracle) twin under confounding
+    naive = summary[(summary["method"] == cal.NAIVE) & (summary["bias"] == 0)]
+    assert naive["mean_rejections"].sum() > 0
+    # coverage: the theorem holds for the population bounds (up to MC error)
+    assert len(cov) >= 4 and cov["covered_mc"].all()
+    assert (cov["q_lo_pop"] <= cov["q_up_pop"]).all()
+    # widths: conditioning on B never widens the bound vs Manski here, both in (0, 1)
+    w = wid.groupby("kind")["mean_width_ratio"].mean()
+    assert 0 < w["causal"] < w["manski"] < 1
+
+
+def test_markdown_summary_reports_the_tables(tiny_run, tiny_cfg):
+    summary = cal.summarise(tiny_run["tests"])
+    md = cal.markdown_summary(
+        tiny_cfg, summary, cal.dominance(summary), tiny_run["coverage"], tiny_run["widths"],
+        tiny_run["timing"],
+    )  # fmt: skip
+    assert "Family-wise error of the oracle twin" in md
+    assert "Exact methods failing calibration: none." in md
+    assert "Betting rejects at least as often as Hoeffding" in md
+    for m in cal.EXACT_METHODS:
+        assert f"| {m} | causal |" in md
+    assert set(OUTCOMES) >= set(tiny_cfg.bias_features)

@@ -1,0 +1,265 @@
+"""Figures, tables and the study summary on a small in-process study (fast).
+
+Known answers are recomputed independently (plain loops over trajectories), never read back
+from the function under test.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import tempfile
+
+import matplotlib.image as mpimg
+import numpy as np
+import pandas as pd
+import pytest
+from study_helpers import build_study
+
+from twinfalsify import bounds, figures, summary, tables
+from twinfalsify.design import WHOLE_SPACE, action_codes, state_codes
+from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.schema import FEATURES, to_array
+from twinfalsify.sources.synthetic import SyntheticWorld
+from twinfalsify.twins import plan as tp
+from twinfalsify.twins.registry import make_twin
+
+TMP = tempfile.mkdtemp(prefix="twinfalsify-figures-")
+
+
+@pytest.fixture(scope="module")
+def st(tmp_path_factory) -> summary.StudyTwin:
+    """1,500 stays, biased twin (HR + 25/min): small but with rejections."""
+    study = build_study(1500, seed=5, d0_fraction=0.2, min_support=5, runs=300)
+    d0_path = tmp_path_factory.mktemp("fig") / "d0.parquet"
+    study.d0.to_parquet(d0_path)
+    ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}, "d0": str(d0_path)}
+    twin = make_twin("biased", {"kind": "biased", "shift": {"HR": 25.0}}, ctx)
+    runs = pd.concat(
+        [tp.run_shard(twin, study.plan, k, study.x0, study.actions, log=io.StringIO())
+         for k in range(len(study.plan.shards))], ignore_index=True,
+    )  # fmt: skip
+    nodes = tp.load_nodes(runs, study.plan, study.x0)
+    twin_vals, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
+    samples = bounds.hypothesis_samples(study.hyps, study.obs, twin_vals)
+    res = run_tests(study.hyps, samples, n_failed, make_methods({"hoeffding": {}}, 0))
+    assert res["rejected"].sum() > 0, "fixture must have rejections"
+    return summary.StudyTwin(study.hyps, samples, res, study.d0, study.d, study.actions,
+                             study.states, nodes)  # fmt: skip
+
+
+def _png_ok(fig, path) -> None:
+    figures.save_all(fig, path)
+    img = mpimg.imread(path)
+    assert img.shape[0] > 300 and img.shape[1] > 300
+    assert img[..., :3].std() > 0.02  # not blank
+
+
+def _brute_enter(d: pd.DataFrame, st, outcome: str, seq, bset):
+    """Per trajectory, by loops: N, entering, following (DESIGN.md definitions)."""
+    x = to_array(d, FEATURES)
+    a = action_codes(d, st.actions)
+    codes = state_codes(x, st.states, outcome)
+    t = len(seq)
+    enter, follow = [], []
+    for i in range(len(x)):
+        n_match = 0
+        while n_match < t and a[i, n_match] == seq[n_match]:
+            n_match += 1
+        ok = all(bset[s] == WHOLE_SPACE or codes[i, s] == bset[s] for s in range(n_match + 1))
+        enter.append(ok)
+        follow.append(ok and n_match == t)
+    return np.array(enter), np.array(follow), x[:, t, FEATURES.index(outcome)]
+
+
+def test_longitudinal_frame_matches_results_and_brute_force(st):
+    hid = summary.pick_hypothesis(st.results, rejected=True)
+    frame = summary.longitudinal_frame(st, hid)
+    row = st.results[st.results["hyp_id"] == hid].iloc[0]
+    last = frame.iloc[-1]
+    assert list(frame["t"]) == list(range(1, int(row["t"]) + 1))
+    for col in ("n", "nhat", "n_follow"):
+        assert int(last[col]) == int(row[col])
+    for col in ("q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat"):
+        assert last[col] == pytest.approx(row[col])
+    hyp = st.hyps[st.hyps["hyp_id"] == hid].iloc[0]
+    x0 = to_array(st.d0, FEATURES)
+    a0 = action_codes(st.d0, st.actions)
+    c0 = state_codes(x0, st.states, hyp["outcome"])
+    for _, r in frame.iterrows():  # every prefix, by loops
+        s = int(r["t"])
+        enter, follow, y = _brute_enter(st.d, st, hyp["outcome"], hyp["actions"][:s],
+                                        hyp["bins"][: s + 1])  # fmt: skip
+        assert int(r["n"]) == enter.sum() and int(r["n_follow"]) == follow.sum()
+        if s < int(hyp["t"]):  # y range: design rule on D0, recomputed
+            sub = [x0[i, s, FEATURES.index(hyp["outcome"])] for i in range(len(x0))
+                   if list(a0[i, :s]) == list(hyp["actions"][:s])
+                   and all(b in (WHOLE_SPACE, c) for b, c in
+                           zip(hyp["bins"][: s + 1], c0[i, : s + 1], strict=True))]  # fmt: skip
+            assert r["y_lo"] == pytest.approx(np.quantile(sub, 0.2))
+            assert r["y_up"] == pytest.approx(np.quantile(sub, 0.8))
+        radius = (r["y_up"] - r["y_lo"]) * np.sqrt(np.log(2 / 0.05) / (2 * r["n"]))
+        assert r["r_bound"] == pytest.approx(radius)
+    _png_ok(figures.longitudinal(frame), TMP + "/_tf_long.png")
+
+
+def test_histogram_data_are_the_followers_and_entering_runs(st):
+    hid = summary.pick_hypothesis(st.results, rejected=True, prefer_long=False)
+    case = summary.histogram_data(st, hid)
+    hyp = st.hyps[st.hyps["hyp_id"] == hid].iloc[0]
+    _, follow, y = _brute_enter(st.d, st, hyp["outcome"], hyp["actions"], hyp["bins"])
+    np.testing.assert_allclose(np.sort(case["obs"]), np.sort(y[follow]))
+    row = st.results[st.results["hyp_id"] == hid].iloc[0]
+    assert len(case["twin"]) == row["nhat"] and case["rejected"]
+    assert case["q_twin_hat"] == pytest.approx(row["q_twin_hat"])
+    other = summary.pick_hypothesis(st.results, rejected=False, exclude=(hid,))
+    assert other != hid and not st.results.loc[st.results["hyp_id"] == other, "rejected"].any()
+    _png_ok(figures.outcome_histograms([case, summary.histogram_data(st, other)]),
+            TMP + "/_tf_hist.png")  # fmt: skip
+
+
+def test_pick_hypothesis_known_answer():
+    rows = []
+    for hid, t, p, rej, n in [(1, 2, 0.001, True, 50), (2, 4, 0.01, True, 40),
+                              (3, 4, 0.002, True, 0), (4, 1, 1.0, False, 80),
+                              (5, 3, 1.0, False, 90)]:  # fmt: skip
+        for side in ("lo", "up"):
+            rows.append({"hyp_id": hid, "kind": "causal", "outcome": "HR", "t": t, "side": side,
+                         "method": "m", "n": n, "nhat": 30, "p_value": p if side == "lo" else 1.0,
+                         "rejected": rej and side == "lo"})  # fmt: skip
+    res = pd.DataFrame(rows)
+    assert summary.pick_hypothesis(res, rejected=True) == 2  # longest t; 3 is untestable
+    assert summary.pick_hypothesis(res, rejected=True, prefer_long=False) == 1
+    assert summary.pick_hypothesis(res, rejected=False) == 5  # p = 1, longer t
+    none = res.assign(rejected=False)
+    assert summary.pick_hypothesis(none, rejected=True) == 2  # falls back to any testable
+
+
+def test_rejections_latex_matches_results(st):
+    table = tables.rejections_table(st.results)
+    tex = tables.rejections_latex(table)
+    cells = dict(re.findall(r"^([A-Za-z0-9_\\]+) & (\d+ / \d+ & \d+ / \d+) \\\\$", tex, re.M))
+    for outcome, part in st.results.groupby("outcome"):
+        c = part[part["kind"] == "causal"]
+        m = part[part["kind"] == "manski"]
+        want = f"{c['rejected'].sum()} / {len(c)} & {m['rejected'].sum()} / {len(m)}"
+        assert cells[outcome.replace("_", r"\_")] == want
+    causal = st.results[st.results["kind"] == "causal"]
+    assert cells["Total"].startswith(f"{causal['rejected'].sum()} / {len(causal)} &")
+
+
+def test_action_space_grid_keeps_counts():
+    rng = np.random.default_rng(0)
+    rows = []
+    for a in range(25):
+        iv, va = divmod(a, 5)
+        rows.append({"action": a, "iv_bin": iv, "vaso_bin": va, "iv_range_ml_h": f"r{iv}",
+                     "vaso_range_ug_kg_min": f"v{va}",
+                     "n_hours": int(rng.integers(0, 500))})  # fmt: skip
+    df = pd.DataFrame(rows)
+    df["share"] = df["n_hours"] / df["n_hours"].sum()
+    grid = tables.action_space_grid(df)
+    assert grid.shape == (5, 6)
+    for a in range(25):
+        iv, va = divmod(a, 5)
+        cell = grid.iloc[iv, 1 + va]
+        assert cell.endswith(f"({df.loc[a, 'n_hours']})")
+        assert cell.startswith(f"{100 * df.loc[a, 'share']:.1f}%")
+    assert "\\%" in tables.grid_latex(grid, "x") and "\\toprule" in tables.grid_latex(grid, "x")
+
+
+def test_clamp_shares_known_answer():
+    runs = pd.DataFrame({
+        "init_stay_id": [1, 1, 2, 3, 3, 4],
+        "clamped": ['{"HR": [130, 110]}', '{"HR": [130, 110]}', "",
+                    '{"HR": [40, 50], "age": [90, 65]}', '{"HR": [40, 50], "age": [90, 65]}',
+                    "{}"],
+    })  # fmt: skip
+    out = summary.clamp_shares(runs).set_index("feature")
+    assert out.loc["HR", "x0_clamped"] == 2 and out.loc["HR", "share"] == pytest.approx(0.5)
+    assert out.loc["age", "x0_clamped"] == 1 and out.loc["age", "share"] == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="clamped"):
+        summary.clamp_shares(runs.assign(clamped="{not json"))
+
+
+def test_study_summary_matches_results(st):
+    runs = pd.DataFrame({"init_stay_id": [1, 2], "t": [1, 1], "status": ["ok", "timeout"],
+                         "clamped": ["", ""]})  # fmt: skip
+    tabs = summary.study_summary("s", st.d0, st.d, st.hyps, {"biased": {"runs": runs,
+                                                             "results": st.results}})  # fmt: skip
+    rej = tabs["rejections"].set_index(["method", "kind"])
+    for (m, k), part in st.results.groupby(["method", "kind"]):
+        assert rej.loc[(m, k), "rejected"] == part["rejected"].sum()
+        assert rej.loc[(m, k), "hypotheses"] == len(part)
+    unt = tabs["untestable"].set_index("kind")["untestable"]
+    per = st.results.drop_duplicates("hyp_id")
+    for k, part in per.groupby("kind"):
+        assert unt[k] == ((part["n"] == 0) | (part["nhat"] == 0)).sum()
+    assert tabs["cohort"]["count"].tolist() == [1500, 300, 1200]
+    assert set(tabs["runs"]["status"]) == {"ok", "timeout"}
+    md = summary.summary_markdown("s", tabs)
+    assert "| biased | hoeffding | causal |" in md
+    assert "<table" in summary.summary_html("s", tabs)
+
+
+def test_sample_size_figure_is_not_blank(st):
+    few = st.results[st.results["outcome"].isin(["HR", "Sodium", "Glucose"])]  # any subset
+    fig = figures.sample_size_histograms(few)
+    assert sum(ax.get_visible() for ax in fig.axes) == 3
+    _png_ok(fig, TMP + "/_tf_n.png")
+
+
+def test_propensity_and_sensitivity_figures_handle_any_methods(st):
+    two = pd.concat([st.results, st.results.assign(method="other")], ignore_index=True)
+    fig = figures.propensity_scatter(two)
+    assert len(fig.axes) == 4  # (2 methods) x (causal, manski)
+    _png_ok(fig, TMP + "/_tf_prop.png")
+    sweep = pd.DataFrame([(d, m, g, 10, max(0, 5 - int(10 * d)), k) for d in (0, 0.2, 0.5)
+                          for m in ("a", "b") for g in ("HR", "pH") for k in ("causal", "manski")],
+                         columns=["delta", "method", "group", "n_hypotheses", "n_rejected",
+                                  "kind"])  # fmt: skip
+    _png_ok(figures.sensitivity_lines(sweep), TMP + "/_tf_sens.png")
+    with pytest.raises(ValueError, match="missing columns"):
+        figures.sensitivity_lines(sweep.drop(columns="n_rejected"))
+
+
+def test_confounding_frame_observed_are_the_takers(st):
+    world = SyntheticWorld.from_config({"n_stays": 1500})
+    frame = summary.confounding_frame(st.d, world, st.actions, "MeanBP", seed=3)
+    a1 = action_codes(st.d, st.actions)[:, 0]
+    x = to_array(st.d, FEATURES)
+    n = len(x)
+    for code in np.unique(a1)[:3]:
+        obs = frame[(frame["action"] == code) & (frame["which"] == "observed")]["value"]
+        want = x[a1 == code, 1, FEATURES.index("MeanBP")]
+        np.testing.assert_allclose(np.sort(obs), np.sort(want))
+        assert ((frame["action"] == code) & (frame["which"] == "everyone")).sum() == n
+    again = summary.confounding_frame(st.d, world, st.actions, "MeanBP", seed=3)
+    pd.testing.assert_frame_equal(frame, again)  # seeded: reproducible
+    _png_ok(figures.confounding(frame, "MeanBP"), TMP + "/_tf_conf.png")
+    with pytest.raises(ValueError, match="never taken"):
+        figures.confounding(frame, "MeanBP", show_action=999)
+    with pytest.raises(ValueError, match="unknown feature"):
+        summary.confounding_frame(st.d, world, st.actions, "nope")
+
+
+def test_unit_labels():
+    assert figures.unit_label("Glucose") == "Glucose (mg/dL)"
+    assert figures.unit_label("sex") == "sex"
+    assert json.loads(json.dumps(figures.STYLE)) == figures.STYLE
+
+
+def test_extend_to_horizon_keeps_the_prefix(st):
+    hid = summary.pick_hypothesis(st.results, rejected=True, prefer_long=False)
+    ext = summary.extend_to_horizon(st.results, st.hyps, hid)
+    h = st.hyps.set_index("hyp_id")
+    t = int(h.loc[hid, "t"])
+    assert int(h.loc[ext, "t"]) >= t and h.loc[ext, "outcome"] == h.loc[hid, "outcome"]
+    assert list(h.loc[ext, "actions"][:t]) == list(h.loc[hid, "actions"])
+    assert list(h.loc[ext, "bins"][: t + 1]) == list(h.loc[hid, "bins"])
+    longer = [i for i, r in h.iterrows() if r["outcome"] == h.loc[hid, "outcome"]
+              and r["kind"] == h.loc[hid, "kind"] and r["t"] > int(h.loc[ext, "t"])
+              and list(r["actions"][:t]) == list(h.loc[hid, "actions"])
+              and list(r["bins"][: t + 1]) == list(h.loc[hid, "bins"])]  # fmt: skip
+    assert not longer  # nothing longer on the same path

@@ -1,0 +1,204 @@
+"""Betting bounds (Waudby-Smith & Ramdas 2024): coverage, monotonicity, p-value, reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinfalsify.inference.betting import (
+    betting_bounds,
+    betting_test,
+    ordered_sides,
+)
+from twinfalsify.inference.hoeffding import hoeffding_radius, hoeffding_test
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.inference.union import smallest_rejecting_alpha, union_reject
+
+# a discrete raw outcome whose clipped mean is known exactly: clip to [10, 20]
+SUPPORT = np.array([8.0, 12.0, 15.0, 19.0, 22.0])
+PROBS = np.array([0.2, 0.3, 0.2, 0.2, 0.1])
+CLIPPED_MEAN = float(np.clip(SUPPORT, 10, 20) @ PROBS)  # 14.8
+
+
+def _replicates(rng, reps, n, p_follow, draw_obs, draw_twin, nhat=None, y=(0.0, 1.0)):
+    """reps independent hypotheses = replicates of one design (vectorised Monte Carlo)."""
+    nhat = n if nhat is None else nhat
+    nf = rng.binomial(n, p_follow, reps)
+    follow = Ragged.from_groups([draw_obs(k) for k in nf])
+    twin = Ragged.from_groups([draw_twin(nhat) for _ in range(reps)])
+    return HypothesisSamples(
+        np.full(reps, y[0]), np.full(reps, y[1]), np.full(reps, n, np.int64), follow, twin
+    )
+
+
+CASES = {
+    "bernoulli": (lambda r: lambda k: r.binomial(1, 0.3, k).astype(float), 0.3, (0.0, 1.0)),
+    "beta": (lambda r: lambda k: r.beta(2, 5, k), 2 / 7, (0.0, 1.0)),
+    "discrete_clipped": (lambda r: lambda k: r.choice(SUPPORT, k, p=PROBS), CLIPPED_MEAN,
+                         (10.0, 20.0)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("n", [20, 200])
+def test_one_sided_bounds_cover(case, n):
+    """Each one-sided (1 - alpha/2) bound covers its mean in >= 95 % of 2,000 replicates."""
+    rng = np.random.default_rng(11 + n)
+    make, mu, y = CASES[case]
+    draw = make(rng)
+    p_f, reps, alpha = 0.6, 2000, 0.1
+    s = _replicates(rng, reps, n, p_f, draw, draw, y=y)
+    b = betting_bounds(s, alpha, tune_alpha=alpha)
+    q_lo, q_up = p_f * mu + (1 - p_f) * y[0], p_f * mu + (1 - p_f) * y[1]
+    floor = 0.95 - 3 * np.sqrt(0.95 * 0.05 / reps)
+    assert np.mean(b["lower_lo"] <= q_lo) >= floor
+    assert np.mean(b["upper_up"] >= q_up) >= floor
+    assert np.mean(b["lower_twin"] <= mu) >= floor
+    assert np.mean(b["upper_twin"] >= mu) >= floor
+
+
+def test_p_values_valid_at_the_null_boundary():
+    """Q_twin = Q_lo exactly: P(p_lo <= a) <= a for a in {0.05, 0.2} (MC 2,000 reps)."""
+    rng = np.random.default_rng(5)
+    reps, n = 2000, 150
+    # Y_lo: followers with prob 1, Beta(2, 2) values: Q_lo = 0.5 = Q_twin
+    s = _replicates(rng, reps, n, 1.0, lambda k: rng.beta(2, 2, k), lambda k: rng.beta(2, 2, k))
+    p_lo, p_up = betting_test(s, tune_alpha=0.05)
+    for a in (0.05, 0.2):
+        assert np.mean(p_lo <= a) <= a + 3 * np.sqrt(a * (1 - a) / reps)
+
+
+def _small_case(seed=3, h=8):
+    rng = np.random.default_rng(seed)
+    n = rng.integers(60, 300, h)
+    nf = (n * rng.uniform(0.6, 1.0, h)).astype(int)
+    nh = rng.integers(40, 300, h)
+    shift = np.linspace(-0.1, 0.25, h)
+    follow = Ragged.from_groups([rng.beta(2, 2, k) for k in nf])
+    twin = Ragged.from_groups([np.clip(rng.beta(2, 2, k) - shift[i], 0, 1)
+                               for i, k in enumerate(nh)])
+    return HypothesisSamples(np.zeros(h), np.ones(h), n.astype(np.int64), follow, twin)
+
+
+def test_bounds_monotone_in_alpha():
+    s = _small_case()
+    prev = None
+    for a in (1e-8, 1e-4, 0.01, 0.1, 0.5, 1.0):
+        b = betting_bounds(s, a, tune_alpha=0.01)
+        if prev is not None:  # larger alpha: bounds move inwards
+            assert np.all(b["lower_lo"] >= prev["lower_lo"] - 1e-12)
+            assert np.all(b["lower_twin"] >= prev["lower_twin"] - 1e-12)
+            assert np.all(b["upper_twin"] <= prev["upper_twin"] + 1e-12)
+            assert np.all(b["upper_up"] <= prev["upper_up"] + 1e-12)
+        prev = b
+
+
+def test_p_value_is_smallest_rejecting_alpha():
+    """Closed-form crossing p == bisection on alpha of the interval rule on the bounds."""
+    s = _small_case()
+    p_lo, p_up = betting_test(s, tune_alpha=0.01)
+
+    def rule(side):
+        def reject(alpha):
+            b = betting_bounds(s, alpha, tune_alpha=0.01)
+            if side == "lo":
+                return union_reject(b["upper_twin"], b["lower_lo"])
+            return union_reject(b["upper_up"], b["lower_twin"])
+        return reject
+
+    ref_lo = smallest_rejecting_alpha(rule("lo"), len(s), rtol=1e-4)
+    ref_up = smallest_rejecting_alpha(rule("up"), len(s), rtol=1e-4)
+    assert (p_lo < 1).sum() >= 3  # the case exercises rejections
+    np.testing.assert_allclose(p_lo, ref_lo, rtol=3e-3)
+    np.testing.assert_allclose(p_up, ref_up, rtol=3e-3)
+
+
+def _reference_p(x_large, x_small, delta0, c):
+    """Per-hypothesis reference: explicit WSR recursion in Python, crossing by bisection."""
+
+    def bets(x):
+        n = len(x)
+        lam, s, ss = np.empty(n), 0.0, 0.0
+        sig2_prev = 0.25
+        for i, xi in enumerate(x, start=1):
+            lam[i - 1] = min(c, np.sqrt(2 * np.log(1 / delta0) / (n * sig2_prev)))
+            s += xi
+            mu = (0.5 + s) / (i + 1)
+            ss += (xi - mu) ** 2
+            sig2_prev = (0.25 + ss) / (i + 1)
+        return lam
+
+    la, ls = bets(x_large), bets(x_small)
+
+    def logk(x, lam, m, sign):
+        cap = c / m if sign > 0 else c / (1 - m)
+        return max(0.0, np.max(np.cumsum(np.log(1 + sign * np.minimum(lam, cap) * (x - m)))))
+
+    a, b = 0.0, 1.0
+    for _ in range(100):
+        m = 0.5 * (a + b)
+        if logk(x_large, la, m, +1) >= logk(x_small, ls, m, -1):
+            a = m
+        else:
+            b = m
+    k = min(logk(x_large, la, b, +1), logk(x_small, ls, a, -1))
+    k = max(k, min(logk(x_large, la, a, +1), logk(x_small, ls, a, -1)))
+    return min(1.0, 2 * np.exp(-k))
+
+
+def test_vectorised_matches_per_hypothesis_reference():
+    s = _small_case(seed=9, h=10)
+    alpha0, c = 0.01, 0.9
+    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6)
+    lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c)
+    for h in range(len(s)):
+        xl = lo.x[lo.offsets[h]: lo.offsets[h + 1]]
+        xu = up.x[up.offsets[h]: up.offsets[h + 1]]
+        xt = tw.x[tw.offsets[h]: tw.offsets[h + 1]]
+        # the order is a permutation of the materialised samples
+        np.testing.assert_allclose(np.sort(xl), np.sort(s.obs_side("lo").group(h)))
+        np.testing.assert_allclose(np.sort(xu), np.sort(s.obs_side("up").group(h)))
+        np.testing.assert_allclose(np.sort(xt), np.sort(s.twin_f.group(h)))
+        assert p_lo[h] == pytest.approx(_reference_p(xl, xt, alpha0 / 2, c), rel=1e-4)
+        assert p_up[h] == pytest.approx(_reference_p(xt, xu, alpha0 / 2, c), rel=1e-4)
+
+
+def test_seeded_and_refusals():
+    s = _small_case()
+    a = betting_test(s, seed=4)
+    b = betting_test(s, seed=4)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    # n = 0 and nhat = 0 refuse (p = 1) without disturbing the others
+    rng = np.random.default_rng(0)
+    groups_f = [rng.random(50), np.zeros(0), rng.random(50) * 0.2 + 0.8]
+    groups_t = [rng.random(50), rng.random(40), np.zeros(0)]
+    z = HypothesisSamples(np.zeros(3), np.ones(3), np.array([50, 0, 50]),
+                          Ragged.from_groups(groups_f), Ragged.from_groups(groups_t))
+    p_lo, p_up = betting_test(z)
+    assert p_lo[1] == p_up[1] == p_lo[2] == p_up[2] == 1.0
+    with pytest.raises(ValueError, match="tune_alpha"):
+        betting_test(s, tune_alpha=0.0)
+
+
+@pytest.mark.parametrize("n", [200, 1000])
+def test_tighter_than_hoeffding_for_moderate_variance(n):
+    """Beta(2, 2) (variance R^2/20), n >= 200, levels 1e-4 and 0.05: never wider than Hoeffding."""
+    rng = np.random.default_rng(n)
+    s = _replicates(rng, 200, n, 1.0, lambda k: rng.beta(2, 2, k), lambda k: rng.beta(2, 2, k))
+    for alpha in (1e-4, 0.05):
+        b = betting_bounds(s, alpha, tune_alpha=alpha)
+        hoef = hoeffding_radius(1.0, n, alpha)
+        assert np.all(s.q_twin_hat - b["lower_twin"] <= hoef)
+        assert np.all(b["upper_twin"] - s.q_twin_hat <= hoef)
+
+
+def test_rejects_more_than_hoeffding_on_shifted_twins():
+    rng = np.random.default_rng(2)
+    reps, n = 400, 500
+    s = _replicates(rng, reps, n, 1.0, lambda k: rng.beta(2, 2, k),
+                    lambda k: np.clip(rng.beta(2, 2, k) - 0.06, 0, 1))
+    pb, _ = betting_test(s)
+    ph, _ = hoeffding_test(s)
+    level = 0.05 / reps
+    assert (pb <= level).sum() > (ph <= level).sum()

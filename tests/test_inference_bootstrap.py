@@ -1,0 +1,133 @@
+"""Bootstrap test: compact resampling law, exact smallest-alpha p-value, refusals, seeding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinfalsify.inference.bootstrap import (
+    bootstrap_distributions,
+    bootstrap_test,
+    union_pvalue_sorted,
+)
+from twinfalsify.inference.samples import HypothesisSamples, Ragged
+
+
+def _samples(rng, h, n, nf, nhat, shift=0.0):
+    follow = Ragged.from_groups([rng.beta(2, 5, k) for k in np.broadcast_to(nf, (h,))])
+    twin = Ragged.from_groups([np.clip(rng.beta(2, 5, k) + shift, 0, 1)
+                               for k in np.broadcast_to(nhat, (h,))])
+    return HypothesisSamples(np.zeros(h), np.ones(h), np.broadcast_to(np.asarray(n), (h,)).copy(),
+                             follow, twin)
+
+
+def test_compact_resampling_has_the_bootstrap_law():
+    """Mean and variance of the resampled means equal those of resampling the full sample.
+
+    For a resample of size n of the materialised sample y: E[theta*] = ybar and
+    Var[theta*] = (1/n) * (1/n) sum (y - ybar)^2 (plug-in variance / n).
+    """
+    rng = np.random.default_rng(0)
+    s = _samples(rng, 1, 300, 120, 150)
+    s = s.with_bounds(np.array([0.15]), np.array([0.5]))  # clipped masses at both ends
+    b = 20000
+    d = bootstrap_distributions(s, n_resamples=b, min_n=1, seed=1)
+    for side, dist in (("lo", d.lo), ("up", d.up), (None, d.twin)):
+        y = s.obs_side(side).group(0) if side else s.twin_f.group(0)
+        var = y.var() / len(y)
+        assert abs(dist.mean() - y.mean()) < 4 * np.sqrt(var / b)
+        assert dist.var() == pytest.approx(var, rel=0.05)  # sd of the ratio ~ sqrt(2/b) = 1 %
+
+
+def _rule(small_hat, small, large_hat, large, delta, kind):
+    """Independent reference: np.quantile's inverted-CDF quantiles at level delta per side."""
+    if kind == "reverse_percentile":
+        upper = 2 * small_hat - np.quantile(small, delta, method="inverted_cdf")
+        lower = 2 * large_hat - np.quantile(large, 1 - delta, method="inverted_cdf")
+    else:
+        upper = np.quantile(small, 1 - delta, method="inverted_cdf")
+        lower = np.quantile(large, delta, method="inverted_cdf")
+    return upper < lower
+
+
+@pytest.mark.parametrize("kind", ["reverse_percentile", "percentile"])
+@pytest.mark.parametrize("b", [100, 99])
+def test_p_value_is_smallest_rejecting_alpha(kind, b):
+    rng = np.random.default_rng(7)
+    h = 300
+    small = np.sort(rng.normal(0, 1, (h, b)), axis=1)
+    large = np.sort(rng.normal(rng.uniform(-1, 5, (h, 1)), 1, (h, b)), axis=1)
+    sh, lh = small.mean(axis=1), large.mean(axis=1)
+    p = union_pvalue_sorted(sh, small, lh, large, kind)
+    assert 0 < (p < 1).sum() < h and (p == 0).sum() > 0  # exercises all regimes
+    for i in range(h):
+        if p[i] < 1:  # rejects just above p/2 per side ...
+            assert _rule(sh[i], small[i], lh[i], large[i], p[i] / 2 + 1e-9, kind)
+        if p[i] > 0:  # ... and not just below
+            assert not _rule(sh[i], small[i], lh[i], large[i], p[i] / 2 - 1e-9, kind)
+        # and on a fine grid of alpha the rule rejects exactly when alpha > p (at alpha = p
+        # itself, a step of the quantile functions, the infimum may or may not be attained)
+        for a in np.linspace(0.001, 0.999, 37):
+            if abs(a - p[i]) < 1e-12:
+                continue
+            assert _rule(sh[i], small[i], lh[i], large[i], a / 2, kind) == (a > p[i])
+
+
+def test_refusals_and_seeding():
+    rng = np.random.default_rng(3)
+    s = _samples(rng, 4, np.array([99, 100, 400, 400]), np.array([99, 100, 300, 300]),
+                 np.array([200, 200, 99, 100]), shift=-0.3)
+    p_lo, p_up = bootstrap_test(s, seed=5)
+    assert p_lo[0] == p_up[0] == 1.0  # n < 100
+    assert p_lo[2] == p_up[2] == 1.0  # nhat < 100
+    assert p_lo[1] < 1 and p_lo[3] < 1  # strongly shifted twin is rejected
+    again = bootstrap_test(s, seed=5)
+    np.testing.assert_array_equal(again[0], p_lo)
+    np.testing.assert_array_equal(again[1], p_up)
+    d1 = bootstrap_distributions(s, seed=5)
+    d2 = bootstrap_distributions(s, seed=6)
+    assert not np.array_equal(d1.twin[1], d2.twin[1])
+    assert np.all(np.isnan(d1.lo[0])) and d1.eligible.tolist() == [False, True, False, True]
+    with pytest.raises(ValueError, match="kind"):
+        bootstrap_test(s, kind="bca")
+    with pytest.raises(ValueError, match="alpha_grid"):
+        bootstrap_test(s, alpha_grid=np.linspace(0, 1, 5))
+
+
+def test_p_values_take_values_on_the_2_over_b_lattice():
+    rng = np.random.default_rng(4)
+    s = _samples(rng, 50, 300, 250, 200, shift=rng.uniform(-0.1, 0.1))
+    p_lo, p_up = bootstrap_test(s, n_resamples=100, seed=0)
+    for p in (p_lo, p_up):
+        k = p * 50
+        assert np.allclose(k, np.round(k))
+
+
+def test_authors_grid_variant():
+    """Smallest grid alpha at which the level-alpha-per-side rule (linear quantiles) rejects."""
+    rng = np.random.default_rng(8)
+    s = _samples(rng, 40, 300, 280, 200, shift=-0.02)
+    grid = np.linspace(0, 1, 101)
+    p_lo, _ = bootstrap_test(s, variant="authors_grid", alpha_grid=grid, seed=2)
+    d = bootstrap_distributions(s, seed=2)
+    for i in range(len(s)):
+        def rej(a, i=i):
+            upper = 2 * d.twin_hat[i] - np.quantile(d.twin[i], a)
+            lower = 2 * d.lo_hat[i] - np.quantile(d.lo[i], 1 - a)
+            return upper < lower
+        first = next((a for a in grid if rej(a)), 1.0)
+        assert p_lo[i] == pytest.approx(first)
+    exact, _ = bootstrap_test(s, seed=2)
+    assert np.mean(p_lo <= exact + 1e-12) > 0.9  # alpha (not alpha/2) per side: less conservative
+
+
+def test_reverse_percentile_coverage_is_close_to_nominal():
+    """Asymptotic method: one-sided 95 % bound covers ~95 % (Beta(2,5), n = 200, B = 200)."""
+    rng = np.random.default_rng(12)
+    reps, b = 1000, 200
+    s = _samples(rng, reps, 200, 200, 200)
+    d = bootstrap_distributions(s, n_resamples=b, min_n=1, seed=3)
+    j = int(np.ceil(0.95 * b)) - 1
+    lower = 2 * d.twin_hat - d.twin[:, j]
+    cover = np.mean(lower <= 2 / 7)
+    assert 0.92 <= cover <= 0.98
