@@ -89,3 +89,29 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
             "ERROR: unexpected failure in rule %s:\n%s", snakemake.rule, traceback.format_exc()
         )
         sys.exit(1)
+
+
+def config_error(config: dict, schema_path: str | Path) -> str | None:
+    """The first violation of the config schema as one line naming the key, or None.
+
+    Snakemake's own ``validate`` prints the whole schema after the message; a person needs
+    the dotted key path, the offending value and the rule, e.g.
+    ``config key twin_runs.n_shards: 'four' is not of type 'integer'``.
+    """
+    import jsonschema
+    import yaml
+
+    schema = yaml.safe_load(Path(schema_path).read_text())
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    error = jsonschema.exceptions.best_match(validator.iter_errors(config))
+    if error is None:
+        return None
+    key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
+    return f"config key {key}: {error.message}"
+
+
+def validate_config(config: dict, schema_path: str | Path) -> None:
+    """Raise ContractError with :func:`config_error`'s one line when the config is invalid."""
+    problem = config_error(config, schema_path)
+    if problem:
+        raise ContractError(f"{Path(schema_path).name}: {problem}")

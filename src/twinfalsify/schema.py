@@ -123,16 +123,17 @@ def validate_trajectories(
     out[TIME] = out[TIME].astype("int64")
     dup = out.duplicated([STAY_ID, TIME])
     if dup.any():
-        row = out.loc[dup].iloc[0]
+        # read the two int columns separately: a row of the mixed frame would be float
+        stay, hour = int(out.loc[dup, STAY_ID].iloc[0]), int(out.loc[dup, TIME].iloc[0])
         raise ContractError(
-            f"{where}duplicated (stay_id, t): stay_id {row[STAY_ID]} has t = {row[TIME]} "
+            f"{where}duplicated (stay_id, t): stay_id {stay} has t = {hour} "
             f"more than once ({int(dup.sum())} duplicated rows)"
         )
     bad_t = ~out[TIME].between(0, t_max)
     if bad_t.any():
         raise ContractError(
             f"{where}column t has values outside 0..{t_max}: "
-            f"{sorted(out.loc[bad_t, TIME].unique())[:5]}"
+            f"{[int(v) for v in sorted(out.loc[bad_t, TIME].unique())[:5]]}"
         )
     counts = out.groupby(STAY_ID)[TIME].count()
     short = counts[counts != t_max + 1]

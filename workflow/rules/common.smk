@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 from snakemake.utils import validate
 
@@ -58,3 +59,50 @@ def all_outputs():
             for ext in ("png", "pdf")
         ]
     return out
+
+
+# --- Cluster resources (threads, mem_mb, runtime) for the twin stage -----------------
+# Seconds of wall time per simulated twin-hour, per twin kind. Builtin twins are vectorised
+# numpy (milliseconds); a `command` twin is budgeted as Pulse 4.2, measured at ~150 s wall per
+# simulated hour per engine (DESIGN.md, data/pulse-reference/). Only used to size Slurm
+# requests: a local run ignores runtime.
+SECONDS_PER_TWIN_HOUR = {
+    "oracle": 0.01,
+    "biased": 0.01,
+    "fitted": 0.01,
+    "command": 150.0,
+}
+
+
+def twin_spec(wildcards):
+    return config["twins"][wildcards.twin]
+
+
+def shard_threads(wildcards):
+    """One core per twin worker process (a Pulse engine is single-threaded)."""
+    return int(twin_spec(wildcards).get("workers", 1))
+
+
+def shard_mem_mb(wildcards, threads):
+    """Builtin twins hold the shard's node table in memory; a twin served over the protocol
+    runs one process per worker (Pulse: ~110 MB per engine, plus headroom)."""
+    spec = twin_spec(wildcards)
+    if spec["kind"] == "command" or spec.get("protocol"):
+        return 1000 + 250 * threads
+    return 4000
+
+
+def shard_runtime(wildcards, input, threads):
+    """Slurm time limit in minutes: twin-hours in this shard x seconds per hour / workers.
+
+    Twin-hours = X_0 count x the hours of the shard's leaf sequences (the prefix tree shares
+    prefixes, so this is an upper bound). Doubled for safety, at least 10 minutes.
+    """
+    plan = json.loads(Path(input.plan).read_text())
+    m = len(plan["x0_stay_ids"])
+    leaves = plan["shards"][int(wildcards.shard)]
+    hours = m * sum(len(str(leaf).split("-")) for leaf in leaves)
+    seconds = (
+        hours * SECONDS_PER_TWIN_HOUR[twin_spec(wildcards)["kind"]] / max(threads, 1)
+    )
+    return max(10, int(2 * seconds / 60) + 1)

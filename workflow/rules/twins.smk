@@ -33,13 +33,15 @@ rule twin_shard:
         f"{LOGS}/twins/{{twin}}/shard_{{shard}}.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/shard_{{shard}}.tsv"
+    group:
+        "twin_shards"
     conda:
         "../../envs/twinfalsify.yaml"
     # twin processes of a protocol/command twin (workers) = cores the job uses
-    threads: lambda w: int(config["twins"][w.twin].get("workers", 1))
+    threads: shard_threads
     resources:
-        mem_mb=4000,
-        runtime=120,
+        mem_mb=shard_mem_mb,
+        runtime=shard_runtime,
     params:
         spec=lambda w: canon(config["twins"][w.twin]),
     script:

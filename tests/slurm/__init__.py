@@ -1,0 +1,1 @@
+"""Helpers for the cluster, resume and determinism tests (a one-node Slurm, study runs)."""

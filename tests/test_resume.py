@@ -1,0 +1,116 @@
+"""Kill and resume: a study killed in the middle of its twin stage completes on rerun.
+
+The twin stage of the small study has 4 shards run one at a time (--cores 1), so the run can
+be stopped when some but not all shards are done. After the rerun (the default profile:
+--rerun-incomplete, 2 cores) every shard finished before the kill must be untouched (same
+inode and modification time: reused, not recomputed), and results.parquet must equal an
+uninterrupted run's, table and bytes.
+
+- SIGKILL to snakemake's whole process group: a crash (node lost, OOM killer, kill -9). The
+  lock stays behind; the rerun refuses until `snakemake --unlock`, as docs/cluster.md says.
+- SIGINT to the group: Ctrl-C. Snakemake stops its jobs, removes their incomplete outputs and
+  releases the lock; the rerun needs nothing else.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from base64 import urlsafe_b64encode
+from pathlib import Path
+
+import pytest
+from slurm.runs import (
+    ROOT,
+    assert_same_results,
+    new_study,
+    reference_run,
+    results_dir,
+    results_files,
+    run,
+    run_env,
+    snakemake_cmd,
+)
+
+pytestmark = pytest.mark.slow
+PROFILE = str(ROOT / "workflow" / "profiles" / "default")
+N_SHARDS = 4
+
+
+def _shards(work: Path, r: Path) -> dict[str, tuple[int, int]]:
+    """Finished shards with (inode, mtime_ns): a recomputed shard gets a new inode.
+
+    Finished = the file exists and Snakemake has closed its job: no incomplete marker
+    (.snakemake/incomplete/<urlsafe base64 of the output path>). A shard whose file was
+    renamed into place but whose job was killed before Snakemake closed it is incomplete,
+    and is rightly redone by --rerun-incomplete.
+    """
+    out = {}
+    for p in sorted((r / "twins" / "biased" / "shards").glob("*.parquet")):
+        rel = str(p.relative_to(work))
+        marker = work / ".snakemake" / "incomplete" / urlsafe_b64encode(rel.encode()).decode()
+        if marker.exists():
+            continue
+        st = p.stat()
+        out[p.name] = (st.st_ino, st.st_mtime_ns)
+    return out
+
+
+def _interrupt(work: Path, config: Path, sig: signal.Signals) -> dict[str, tuple[int, int]]:
+    """Start the study, send ``sig`` to its process group once 1..3 shards exist."""
+    r = results_dir(work, config)
+    proc = subprocess.Popen(
+        snakemake_cmd(work, config, "--cores", "1"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=run_env(),
+        start_new_session=True,  # its own process group: the signal reaches the jobs too
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while not _shards(work, r):
+            assert proc.poll() is None, "snakemake ended before any shard was written"
+            assert time.monotonic() < deadline, "no shard after 300 s"
+            time.sleep(0.05)
+        os.killpg(proc.pid, sig)
+        proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    done = _shards(work, r)
+    assert 0 < len(done) < N_SHARDS, f"stopped with {len(done)} of {N_SHARDS} shards done"
+    assert not (r / "twins" / "biased" / "results.parquet").exists()
+    return done
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
+def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path):
+    work = tmp_path / "study"
+    config = new_study(work)
+    before = _interrupt(work, config, sig)
+    traj = results_dir(work, config) / "trajectories.parquet"
+    traj_stat = traj.stat().st_mtime_ns
+
+    if sig == signal.SIGKILL:
+        locked = run(work, config, "--workflow-profile", PROFILE)
+        assert locked.returncode != 0
+        assert "cannot be locked" in locked.stderr + locked.stdout
+        unlock = run(work, config, "--unlock")
+        assert unlock.returncode == 0, unlock.stderr[-2000:]
+
+    resumed = run(work, config, "--workflow-profile", PROFILE)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    after = _shards(work, results_dir(work, config))
+    assert len(after) == N_SHARDS
+    for name, stat in before.items():
+        assert after[name] == stat, f"finished shard {name} was recomputed"
+    assert traj.stat().st_mtime_ns == traj_stat, "upstream rule recomputed"
+    # the rerun ran exactly the missing shards (+ everything downstream), per its log
+    n_shard_jobs = (resumed.stdout + resumed.stderr).count("rule twin_shard:")
+    assert n_shard_jobs == N_SHARDS - len(before)
+
+    ref_work, ref_config = reference_run(cores=1)
+    assert_same_results(results_files(work, config), results_files(ref_work, ref_config))
