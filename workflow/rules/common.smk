@@ -1,8 +1,20 @@
 import json
 from pathlib import Path
 
+import sys
+
 from snakemake.utils import validate
 
+sys.path.insert(0, str(Path(workflow.basedir) / "src"))
+from twinfalsify.io import config_error  # noqa: E402
+
+# One line naming the key (Snakemake's own message prints the whole schema), then
+# Snakemake's validate for the schema's defaults.
+_problem = config_error(
+    config, Path(workflow.basedir) / "workflow/schemas/config.schema.yaml"
+)
+if _problem:
+    raise ValueError(f"invalid config: {_problem}")
 validate(config, schema="../schemas/config.schema.yaml")
 
 STUDY = config["study"]
