@@ -9,7 +9,6 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import StateBins  # noqa: E402
 from twinfalsify.falsify import make_methods, run_tests  # noqa: E402
-from twinfalsify.inference.samples import Ragged  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
 from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame  # noqa: E402
 
@@ -22,12 +21,7 @@ def main(sm):
     states = StateBins.from_json(read_json(sm.input.bins))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     nodes = load_nodes(read_parquet(sm.input.runs, "twin runs"), plan, x0)
-    obs = bounds.ObservationalSide(
-        n=counts["n"].to_numpy(),
-        follow=Ragged.from_grouped(
-            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
-        ),
-    )
+    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     twin, n_failed = bounds.twin_side(hyps, nodes, states)
     samples = bounds.hypothesis_samples(hyps, obs, twin)
     cfg = json.loads(sm.params.testing)

@@ -8,7 +8,6 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import ActionBins, StateBins  # noqa: E402
-from twinfalsify.inference.samples import Ragged  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
 from twinfalsify.twins.adaptive import run_adaptive_shard  # noqa: E402
 from twinfalsify.twins.plan import TwinPlan, x0_frame  # noqa: E402
@@ -31,12 +30,7 @@ def main(sm):
     hyps = read_parquet(sm.input.hypotheses, "hypotheses")
     counts = read_parquet(sm.input.counts, "observational counts")
     follow = read_parquet(sm.input.follow, "follower outcomes")
-    obs = bounds.ObservationalSide(
-        n=counts["n"].to_numpy(),
-        follow=Ragged.from_grouped(
-            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
-        ),
-    )
+    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     runs_cfg, testing = json.loads(sm.params.runs), json.loads(sm.params.testing)
     twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)

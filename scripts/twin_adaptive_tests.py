@@ -11,7 +11,6 @@ import pandas as pd  # noqa: E402
 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import StateBins  # noqa: E402
-from twinfalsify.inference.samples import Ragged  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
 from twinfalsify.twins.adaptive import adaptive_results, load_simulated  # noqa: E402
@@ -23,12 +22,7 @@ def main(sm):
     hyps = read_parquet(sm.input.hypotheses, "hypotheses")
     counts = read_parquet(sm.input.counts, "observational counts")
     follow = read_parquet(sm.input.follow, "follower outcomes")
-    obs = bounds.ObservationalSide(
-        n=counts["n"].to_numpy(),
-        follow=Ragged.from_grouped(
-            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
-        ),
-    )
+    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     rows = pd.concat([read_parquet(p, "adaptive twin shard") for p in sm.input.runs],
                      ignore_index=True)
     decisions = pd.concat([read_parquet(p, "adaptive decisions") for p in sm.input.decisions],

@@ -24,3 +24,27 @@ def shared_dir() -> Path | None:
 @pytest.fixture(scope="session")
 def root() -> Path:
     return ROOT
+
+
+def run_snakemake(workdir: Path, config: Path, *args: str, timeout: int = 900):
+    """``snakemake -s <repo>/Snakefile --directory workdir --configfile config *args``."""
+    import subprocess
+
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
+           str(workdir), "--configfile", str(config), *args]  # fmt: skip
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+
+
+@pytest.fixture(scope="session")
+def test_study(tmp_path_factory):
+    """The tiny study of config/test.yaml, run once per session with every output:
+    (workdir, config path). Tests that modify it must leave it complete."""
+    import shutil
+
+    work = tmp_path_factory.mktemp("test-study")
+    config = work / "test.yaml"
+    shutil.copy(ROOT / "config" / "test.yaml", config)
+    run = run_snakemake(work, config, "--cores", "2")
+    assert run.returncode == 0, run.stderr[-3000:]
+    return work, config

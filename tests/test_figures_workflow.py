@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import matplotlib.image as mpimg
 import pandas as pd
 import pytest
 import yaml
+from conftest import run_snakemake
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -20,20 +17,11 @@ FIGURES = ("pvalues", "longitudinal", "histograms", "sample_sizes", "propensity"
 HAS_SWEEP = (ROOT / "src" / "twinfalsify" / "inference" / "sensitivity.py").exists()
 
 
-def snakemake(workdir: Path, config: Path, *args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
-           str(workdir), "--configfile", str(config), *args]  # fmt: skip
-    env = {**os.environ, "MPLBACKEND": "Agg"}
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
-    work = tmp_path_factory.mktemp("figstudy")
-    config = work / "test.yaml"
-    shutil.copy(ROOT / "config" / "test.yaml", config)
-    run = snakemake(work, config, "--cores", "2")
-    assert run.returncode == 0, run.stderr[-3000:]
+def study(test_study):
+    work, config = test_study
     cfg = yaml.safe_load(config.read_text())
     return work, config, cfg, work / "results" / cfg["study"]
 
@@ -90,7 +78,9 @@ def test_tables_match_the_results_they_summarise(study):
 
 def test_editing_a_plotting_script_reruns_only_that_figure(study):
     work, config, cfg, _ = study
-    run = snakemake(work, config, "--cores", "1", "--dry-run", "--forcerun", "figure_propensity")
+    run = run_snakemake(
+        work, config, "--cores", "1", "--dry-run", "--forcerun", "figure_propensity"
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     jobs = [j for j in re.findall(r"^rule (\w+):", run.stdout, re.M) if j != "all"]
     assert set(jobs) == {"figure_propensity"} and len(jobs) == len(cfg["twins"])
@@ -99,7 +89,7 @@ def test_editing_a_plotting_script_reruns_only_that_figure(study):
 def test_report_includes_every_figure_with_captions(study):
     work, config, cfg, r = study
     out = work / "report.zip"
-    run = snakemake(work, config, "--report", str(out))
+    run = run_snakemake(work, config, "--report", str(out))
     assert run.returncode == 0, run.stderr[-3000:]
     import zipfile
 

@@ -2,47 +2,25 @@
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 import yaml
+from conftest import run_snakemake
 
 from twinfalsify.falsify import RESULT_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
-SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 pytestmark = pytest.mark.slow
 
 
-def snakemake(workdir: Path, config: Path, *args: str) -> subprocess.CompletedProcess:
-    cmd = [
-        *SNAKEMAKE,
-        "-s",
-        str(ROOT / "Snakefile"),
-        "--directory",
-        str(workdir),
-        "--configfile",
-        str(config),
-        *args,
-    ]
-    env = {**os.environ, "MPLBACKEND": "Agg"}
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
-    work = tmp_path_factory.mktemp("study")
-    config = work / "test.yaml"
-    shutil.copy(ROOT / "config" / "test.yaml", config)
-    run = snakemake(work, config, "--cores", "2")
-    assert run.returncode == 0, run.stderr[-3000:]
-    return work, config
+def study(test_study):
+    return test_study
 
 
 def test_outputs_exist_with_their_columns(study):
@@ -71,7 +49,7 @@ def test_outputs_exist_with_their_columns(study):
 
 def test_second_run_has_nothing_to_do(study):
     work, config = study
-    run = snakemake(work, config, "--cores", "2", "--dry-run")
+    run = run_snakemake(work, config, "--cores", "2", "--dry-run")
     assert run.returncode == 0
     assert "Nothing to be done" in run.stdout + run.stderr
 
@@ -82,7 +60,7 @@ def test_changing_one_twin_reruns_only_that_twin(study, tmp_path):
     cfg["twins"]["biased"]["shift"] = {"HR": 10.0}
     changed = tmp_path / "changed.yaml"
     changed.write_text(yaml.safe_dump(cfg))
-    run = snakemake(work, changed, "--cores", "2", "--dry-run")
+    run = run_snakemake(work, changed, "--cores", "2", "--dry-run")
     out = run.stdout + run.stderr
     assert run.returncode == 0, out[-2000:]
     rules = set(re.findall(r"rule (\w+):", out)) - {"all"}
@@ -99,6 +77,6 @@ def test_bad_config_is_refused_with_the_key_named(tmp_path):
     cfg["split"]["d0_fracton"] = cfg["split"].pop("d0_fraction")
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(cfg))
-    run = snakemake(tmp_path, bad, "--cores", "1", "--dry-run")
+    run = run_snakemake(tmp_path, bad, "--cores", "1", "--dry-run")
     assert run.returncode != 0
     assert "d0_fracton" in run.stderr + run.stdout

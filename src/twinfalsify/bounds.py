@@ -20,7 +20,7 @@ import pandas as pd
 
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
-from twinfalsify.schema import FEATURES, T_MAX
+from twinfalsify.schema import FEATURES, T_MAX, ContractError
 
 _CHUNK_CELLS = 40_000_000  # booleans per chunk (H_chunk x n x (T + 1)): bounded memory
 
@@ -74,6 +74,24 @@ def observational_side(
             for j, v in enumerate(np.split(vals, cuts)):
                 groups[hs[j]] = v
     return ObservationalSide(n=n_enter, follow=Ragged.from_groups(groups))
+
+
+def observational_side_from_tables(
+    hyps: pd.DataFrame, counts: pd.DataFrame, follow: pd.DataFrame
+) -> ObservationalSide:
+    """The observational_side rule's tables (counts: hyp_id, n; follow: hyp_id, value) ->
+    ObservationalSide aligned to ``hyps``' order."""
+    ids = hyps["hyp_id"].to_numpy()
+    n = counts.set_index("hyp_id")["n"].reindex(ids)
+    if n.isna().any():
+        raise ContractError(
+            f"observational counts lack {int(n.isna().sum())} hypothesis id(s), "
+            f"e.g. {int(ids[n.isna().to_numpy()][0])}: rerun the observational_side rule"
+        )
+    follow_side = Ragged.from_grouped(
+        follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), ids
+    )
+    return ObservationalSide(n=n.to_numpy(np.int64), follow=follow_side)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import pandas as pd
 from twinfalsify import bounds
 from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes, state_codes
 from twinfalsify.inference.hoeffding import hoeffding_radius
-from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
 from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame
@@ -58,12 +58,7 @@ def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
     nodes = load_nodes(
         read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids)
     )
-    obs = bounds.ObservationalSide(
-        n=counts["n"].to_numpy(),
-        follow=Ragged.from_grouped(
-            follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), hyps["hyp_id"].to_numpy()
-        ),
-    )
+    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     twin, _ = bounds.twin_side(hyps, nodes, states)
     return StudyTwin(
         hyps=hyps,
