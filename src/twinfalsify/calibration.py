@@ -29,6 +29,10 @@ Measured (aggregated over R replicates by :func:`summarise`):
   the observational mean of f among followers (A_1:t = a_1:t, X in B), no
   bounds; with confounding it rejects the oracle.
 * Widths: mean (Q_up - Q_lo) / (y_up - y_lo) = 1 - propensity, causal vs Manski.
+* Adaptive twin runs (``adaptive: true``; issue 11): ``inference.sequential.adaptive_test``
+  on the same runs revealed in batches (method ``betting_sequential``): its FWER and power
+  as above, and per twin the simulated twin-hours (prefix reuse) adaptive vs fixed and the
+  share of the fixed betting / Hoeffding rejections it keeps (:func:`adaptive_summary`).
 
 Caveat shared with the study: the twin receives the median dose of each action
 bin while the observational followers of a bin received varied doses, so the
