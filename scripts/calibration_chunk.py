@@ -15,7 +15,7 @@ def main(sm):
     reps = calibration.chunk_replicates(cfg, chunk)
     log.info("chunk %d of %d: replicates %s", chunk, cfg.chunks, reps)
     out = calibration.run_replicates(cfg, reps, log=log)
-    for name in ("tests", "coverage", "widths", "timing"):
+    for name in ("tests", "coverage", "widths", "timing", "adaptive"):
         write_parquet(out[name], getattr(sm.output, name))
 
 

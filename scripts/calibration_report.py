@@ -24,6 +24,13 @@ def main(sm):
     cov = _merge(sm.input.coverage, "calibration coverage")
     wid = _merge(sm.input.widths, "calibration widths")
     timing = _merge(sm.input.timing, "calibration timing")
+    adaptive = _merge(sm.input.adaptive, "calibration adaptive rows")
+    if cfg.adaptive and adaptive["replicate"].nunique() != cfg.replicates:
+        raise ContractError(
+            f"{sm.input.config}: adaptive: true but the chunks hold adaptive rows for "
+            f"{adaptive['replicate'].nunique() if not adaptive.empty else 0} of "
+            f"{cfg.replicates} replicates"
+        )
     n_rep = tests["replicate"].nunique()
     if n_rep != cfg.replicates:
         raise ContractError(
@@ -31,7 +38,9 @@ def main(sm):
         )
     summary = cal.summarise(tests, cfg.alpha)
     dom = cal.dominance(summary)
-    write_csv(summary, sm.output.table)
+    asum = cal.adaptive_summary(adaptive) if not adaptive.empty else pd.DataFrame()
+    write_csv(cal.attach_hours(summary, asum), sm.output.table)
+    write_csv(asum, sm.output.adaptive)
     write_csv(dom, sm.output.dominance)
     write_csv(cov, sm.output.coverage)
     write_csv(wid, sm.output.widths)
@@ -40,7 +49,7 @@ def main(sm):
     if cov.empty:
         raise ContractError(f"{sm.input.config}: no coverage checks ran (coverage_per_replicate)")
     cal.plot_coverage(cov, sm.output.coverage_png, sm.output.coverage_pdf)
-    md = cal.markdown_summary(cfg, summary, dom, cov, wid, timing)
+    md = cal.markdown_summary(cfg, summary, dom, cov, wid, timing, adaptive)
     write_text(md, sm.output.summary)
     log.info("\n%s", md)
 

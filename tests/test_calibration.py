@@ -12,6 +12,7 @@ from scipy import stats
 
 from twinfalsify import calibration as cal
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.inference.sequential import adaptive_test
 from twinfalsify.schema import OUTCOMES, ContractError
 from twinfalsify.twins import plan as tp
 from twinfalsify.twins.builtin import BiasedTwin
@@ -28,6 +29,8 @@ TINY = dict(
     coverage_per_replicate=2,
     coverage_population=15_000,
     coverage_min_inside=100,
+    adaptive=True,
+    adaptive_batch_size=25,
 )
 
 
@@ -117,7 +120,8 @@ def test_chunks_partition_the_replicates_and_seeds_do_not_depend_on_chunking(tin
         ({"bogus": 1}, "unknown key"),
         ({"bias_sizes": [1.0, 2.0]}, "bias_sizes must include 0"),
         ({"bias_features": ["HR", "Spleen"]}, "Spleen"),
-        ({"adaptive": True}, "inference.sequential"),
+        ({"adaptive_batch_size": 0}, "adaptive_batch_size"),
+        ({"adaptive": "yes"}, "adaptive must be true or false"),
         ({"d0_fraction": 1.5}, "d0_fraction"),
     ],
 )
@@ -136,13 +140,14 @@ def test_tiny_run_tables_and_known_answers(tiny_run, tiny_cfg):
     assert tuple(tests.columns) == cal.TEST_COLUMNS
     assert tuple(cov.columns) == cal.COVERAGE_COLUMNS
     assert tuple(wid.columns) == cal.WIDTH_COLUMNS
-    methods = set(tiny_cfg.methods) | {cal.NAIVE}
+    methods = set(tiny_cfg.methods) | {cal.NAIVE, cal.ADAPTIVE}
     # every replicate x bias x method x kind present exactly once
     assert len(tests) == 4 * 2 * len(methods) * 2
     assert not tests.duplicated(["replicate", "bias", "method", "kind"]).any()
     summary = cal.summarise(tests)
     assert summary["any_rejection_rate"].between(0, 1).all()
     oracle = summary[(summary["bias"] == 0) & summary["method"].isin(cal.EXACT_METHODS)]
+    assert cal.ADAPTIVE in set(oracle["method"])
     assert (oracle["mean_rejections"] == 0).all()  # no exact method rejects the oracle
     # a huge bias (8 SDs on every outcome) is found by every method on the Manski family
     huge = summary[(summary["bias"] == 8.0) & (summary["kind"] == "manski")]
@@ -163,11 +168,90 @@ def test_markdown_summary_reports_the_tables(tiny_run, tiny_cfg):
     summary = cal.summarise(tiny_run["tests"])
     md = cal.markdown_summary(
         tiny_cfg, summary, cal.dominance(summary), tiny_run["coverage"], tiny_run["widths"],
-        tiny_run["timing"],
+        tiny_run["timing"], tiny_run["adaptive"],
     )  # fmt: skip
     assert "Family-wise error of the oracle twin" in md
+    assert "## Adaptive twin runs (betting_sequential, batches of 25)" in md
+    assert "| betting_sequential | causal |" in md
     assert "Exact methods failing calibration: none." in md
     assert "Betting rejects at least as often as Hoeffding" in md
     for m in cal.EXACT_METHODS:
         assert f"| {m} | causal |" in md
     assert set(OUTCOMES) >= set(tiny_cfg.bias_features)
+
+
+def test_run_adaptive_equals_adaptive_test(tiny_cfg):
+    """The shared observational state per replicate changes nothing: same outcome as
+    ``sequential.adaptive_test`` called afresh, for the oracle and a biased twin."""
+    rep = cal.build_replicate(tiny_cfg, tiny_cfg.replicate_seed(1))
+    base = cal.adaptive_state(tiny_cfg, rep)
+    for bias in (0.0, 1.5):  # 0 first: a mutated shared state would show at 1.5
+        nodes = cal.shifted_nodes(rep, bias, tiny_cfg.bias_features)
+        got = cal.run_adaptive(tiny_cfg, rep, nodes, base)
+        want = adaptive_test(rep.hyps, rep.obs, nodes, rep.states, batch_size=25,
+                             alpha=tiny_cfg.alpha, correction=tiny_cfg.correction, seed=rep.seed)
+        for f in ("p_lo", "p_up", "stop_batch", "runs_used", "runs_per_hypothesis", "decision",
+                  "nhat", "rejected_lo", "rejected_up"):  # fmt: skip
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+        assert (got.twin_hours_adaptive, got.twin_hours_fixed) == (
+            want.twin_hours_adaptive, want.twin_hours_fixed)
+        assert want.twin_hours_fixed == len(rep.nodes.index) * tiny_cfg.runs_per_sequence
+    assert (base.stop_batch[rep.obs.n > 0] == -1).all()  # the shared state was not mutated
+
+
+def test_tiny_run_adaptive_rows(tiny_run, tiny_cfg):
+    """Adaptive rows present per replicate, kind and bias; the oracle is never rejected;
+    a huge bias is; twin-hours are those of the runs revealed (ratio in (0, 1])."""
+    tests, ad = tiny_run["tests"], tiny_run["adaptive"]
+    seq = tests[tests["method"] == cal.ADAPTIVE]
+    assert len(seq) == tiny_cfg.replicates * 2 * 2  # replicate x bias x kind
+    assert (seq[seq["bias"] == 0]["n_rejected"] == 0).all()
+    huge = seq[(seq["bias"] == 8.0) & (seq["kind"] == "manski")]
+    assert huge["any_rejected"].all()
+    assert tuple(ad.columns) == cal.ADAPTIVE_COLUMNS
+    assert len(ad) == tiny_cfg.replicates * 2 and not ad.duplicated(["replicate", "bias"]).any()
+    assert ((ad["hours_ratio"] > 0) & (ad["hours_ratio"] <= 1)).all()
+    ratio = ad["twin_hours_adaptive"] / ad["twin_hours_fixed"]
+    np.testing.assert_allclose(ad["hours_ratio"], ratio)
+    assert (ad["twin_hours_fixed"] == ad["n_nodes"] * tiny_cfg.runs_per_sequence).all()
+    # twin-hours are whole batches per node (the budget 150 is 6 batches of 25)
+    assert (ad["twin_hours_adaptive"] % tiny_cfg.adaptive_batch_size == 0).all()
+    # rejections per replicate and bias agree between the two tables (both kinds)
+    per = seq.groupby(["replicate", "bias"])["n_rejected"].sum()
+    assert (ad.set_index(["replicate", "bias"])["n_rejected"] == per).all()
+    # kept <= both counts; kept rejections of the fixed betting test are most of them
+    assert (ad["n_kept_betting"] <= ad["n_rejected_betting"]).all()
+    assert (ad["n_kept_betting"] <= ad["n_rejected"]).all()
+    asum = cal.adaptive_summary(ad).set_index("bias")
+    assert np.isnan(asum.loc[0.0, "kept_share_betting"])  # nothing to keep at the oracle
+    assert asum.loc[0.0, "target_rejections"] is pd.NA
+    want = ad[ad.bias == 8.0]
+    assert asum.loc[8.0, "kept_share_betting"] == pytest.approx(
+        want["n_kept_betting"].sum() / want["n_rejected_betting"].sum())
+    assert asum.loc[8.0, "hours_ratio"] == pytest.approx(
+        want["twin_hours_adaptive"].sum() / want["twin_hours_fixed"].sum())
+    table = cal.attach_hours(cal.summarise(tests), asum.reset_index())
+    rows = table[table["method"] == cal.ADAPTIVE]
+    assert rows["hours_ratio"].notna().all() and table[table["method"] != cal.ADAPTIVE][
+        "hours_ratio"].isna().all()
+
+
+def test_adaptive_summary_kept_share_and_target_known_answer():
+    """Pooled ratios and the target, worked by hand on two replicates."""
+    ad = pd.DataFrame([
+        (0, 1.0, 25, 400, 10, 300, 4000, 0.075, 9, 10, 9, 4, 4, 0, 0.1),
+        (1, 1.0, 25, 400, 10, 500, 4000, 0.125, 10, 10, 9, 4, 3, 2, 0.2),
+        (0, 2.0, 25, 400, 10, 400, 4000, 0.1, 3, 4, 3, 0, 0, 0, 0.1),
+        (1, 2.0, 25, 400, 10, 400, 4000, 0.1, 1, 1, 1, 0, 0, 0, 0.1),
+    ], columns=list(cal.ADAPTIVE_COLUMNS))  # fmt: skip
+    s = cal.adaptive_summary(ad).set_index("bias")
+    assert s.loc[1.0, "hours_ratio"] == pytest.approx(800 / 8000)  # pooled: met at exactly 1/10
+    assert s.loc[1.0, "hours_ratio_max"] == pytest.approx(0.125)
+    assert s.loc[1.0, "kept_share_betting"] == pytest.approx(18 / 20)
+    assert s.loc[1.0, "kept_share_hoeffding"] == pytest.approx(7 / 8)
+    assert s.loc[1.0, "target_hours"] and s.loc[1.0, "target_rejections"]  # 0.9 >= 0.9
+    assert s.loc[2.0, "kept_share_betting"] == pytest.approx(4 / 5)
+    assert not s.loc[2.0, "target_rejections"]
+    assert np.isnan(s.loc[2.0, "kept_share_hoeffding"])
+    md = "\n".join(cal.adaptive_markdown(s.reset_index()))
+    assert "met at bias level(s): 1." in md

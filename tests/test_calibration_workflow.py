@@ -61,6 +61,13 @@ def test_calibration_target_writes_table_figures_summary_and_reruns_on_config_ed
     for f in ("power.png", "power.pdf", "coverage.png", "coverage.pdf"):
         assert (out / "figures" / f).stat().st_size > 0
     assert "Family-wise error of the oracle twin" in (out / "summary.md").read_text()
+    # adaptive rows (default adaptive: true): in the table with twin-hours, and per bias
+    seq = table[table["method"] == "betting_sequential"]
+    assert len(seq) == 4 and seq["hours_ratio"].between(0, 1, inclusive="right").all()
+    assert (seq[seq["bias"] == 0]["mean_rejections"] == 0).all()
+    adaptive = pd.read_csv(out / "adaptive.csv")
+    assert sorted(adaptive["bias"]) == [0.0, 8.0] and (adaptive["replicates"] == 4).all()
+    assert "## Adaptive twin runs" in (out / "summary.md").read_text()
     assert snakemake(work, "-n", "calibration").stdout.count("rule calibration_chunk") == 0
     (work / "config" / "calibration.yaml").write_text(yaml.safe_dump({**TINY, "seed": 5}))
     dry = snakemake(work, "-n", "calibration")

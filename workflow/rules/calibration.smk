@@ -15,6 +15,7 @@ CAL_CHUNKS = list(range(int((yaml.safe_load(CAL_CFG_TEXT) or {}).get("chunks", 4
 rule calibration:
     input:
         f"{CAL}/calibration.csv",
+        f"{CAL}/adaptive.csv",
         f"{CAL}/summary.md",
         f"{CAL}/figures/power.png",
         f"{CAL}/figures/coverage.png",
@@ -28,6 +29,7 @@ rule calibration_chunk:
         coverage=f"{CAL}/chunks/{{chunk}}/coverage.parquet",
         widths=f"{CAL}/chunks/{{chunk}}/widths.parquet",
         timing=f"{CAL}/chunks/{{chunk}}/timing.parquet",
+        adaptive=f"{CAL}/chunks/{{chunk}}/adaptive.parquet",
     log:
         f"{CAL}/logs/chunk_{{chunk}}.log",
     benchmark:
@@ -53,12 +55,17 @@ rule calibration_report:
         ),
         widths=expand(f"{CAL}/chunks/{{chunk}}/widths.parquet", chunk=CAL_CHUNKS),
         timing=expand(f"{CAL}/chunks/{{chunk}}/timing.parquet", chunk=CAL_CHUNKS),
+        adaptive=expand(
+            f"{CAL}/chunks/{{chunk}}/adaptive.parquet",
+            chunk=CAL_CHUNKS,
+        ),
     output:
         table=report(
             f"{CAL}/calibration.csv",
             caption="../report/calibration.rst",
             category="Calibration",
         ),
+        adaptive=f"{CAL}/adaptive.csv",
         dominance=f"{CAL}/dominance.csv",
         coverage=f"{CAL}/coverage.csv",
         widths=f"{CAL}/widths.csv",
