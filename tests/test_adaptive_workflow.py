@@ -8,7 +8,8 @@ import re
 import pandas as pd
 import pytest
 import yaml
-from test_workflow import ROOT, snakemake
+from conftest import ROOT
+from conftest import run_snakemake as snakemake
 
 pytestmark = pytest.mark.slow
 
