@@ -233,7 +233,10 @@ def adaptive_results(
             "hyp_id": hyps["hyp_id"].to_numpy(), "kind": hyps["kind"].to_numpy(),
             "outcome": hyps["outcome"].to_numpy(), "t": hyps["t"].to_numpy(), "side": side,
             "method": "betting_sequential", "n": s.n, "n_follow": s.n_follow, "nhat": s.nhat,
-            "n_failed": dec["n_failed"].to_numpy(), "y_lo": s.y_lo, "y_up": s.y_up,
+            "n_failed": dec["n_failed"].to_numpy(),
+            # the sequential test leaves failed runs out (counted in n_failed); the
+            # conservative worst case of the fixed scheme is not implemented for it
+            "failed_runs": "drop", "y_lo": s.y_lo, "y_up": s.y_up,
             "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
             "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
             "rejected": rej, "correction": correction, "alpha": alpha,
