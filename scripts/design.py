@@ -16,14 +16,8 @@ def main(sm):
     d0 = validate_trajectories(read_parquet(sm.input.d0, "D0"), source=sm.input.d0)
     d = validate_trajectories(read_parquet(sm.input.d, "D"), source=sm.input.d)
     outcomes = tuple(cfg.get("outcomes", OUTCOMES))
-    actions = design.fit_action_bins(d0)
-    states = design.fit_state_bins(d0, outcomes)
-    hyps, report = design.build_hypotheses(
-        d0,
-        actions,
-        states,
-        outcomes=outcomes,
-        quantiles=tuple(cfg.get("quantiles", (0.2, 0.8))),
+    actions, states, hyps, report = design.design_on_d0(
+        d0, outcomes=outcomes, quantiles=tuple(cfg.get("quantiles", (0.2, 0.8))),
         min_support=int(cfg.get("min_support", 10)),
         kinds=tuple(cfg.get("kinds", ("causal", "manski"))),
     )

@@ -39,9 +39,7 @@ def build_study(
     world = SyntheticWorld.from_config({"n_stays": n_stays, **(world_cfg or {})})
     traj = world.sample_observational(seed)
     d0, d = split_stays(traj, d0_fraction, seed)
-    actions = design.fit_action_bins(d0)
-    states = design.fit_state_bins(d0)
-    hyps, _ = design.build_hypotheses(d0, actions, states, min_support=min_support)
+    actions, states, hyps, _ = design.design_on_d0(d0, min_support=min_support)
     obs = bounds.observational_side(
         hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
     )

@@ -70,6 +70,7 @@ from twinfalsify.inference.sequential import (
 from twinfalsify.schema import FEATURES, OUTCOMES, STAY_ID, ContractError, to_array
 from twinfalsify.sources.synthetic import SyntheticWorld
 from twinfalsify.split import split_stays
+from twinfalsify.tables import markdown_table
 from twinfalsify.twins import plan as tp
 from twinfalsify.twins.builtin import OracleTwin
 
@@ -205,10 +206,8 @@ def build_replicate(cfg: CalibrationConfig, seed: int) -> Replicate:
     world = SyntheticWorld(n_stays=cfg.n_stays, confounding=cfg.confounding)
     traj = world.sample_observational(seed)
     d0, d = split_stays(traj, cfg.d0_fraction, seed)
-    actions = design.fit_action_bins(d0)
-    states = design.fit_state_bins(d0)
-    hyps, _ = design.build_hypotheses(
-        d0, actions, states, quantiles=tuple(cfg.quantiles), min_support=cfg.min_support
+    actions, states, hyps, _ = design.design_on_d0(
+        d0, quantiles=tuple(cfg.quantiles), min_support=cfg.min_support
     )
     if hyps.empty:
         raise ContractError(
@@ -764,12 +763,7 @@ def plot_coverage(cov: pd.DataFrame, png: str, pdf: str) -> None:
 
 
 def _md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> str:
-    cols = list(df.columns)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for row in df.itertuples(index=False):
-        cells = [format(v, floatfmt) if isinstance(v, float) else str(v) for v in row]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return markdown_table(df, floatfmt)
 
 
 def markdown_summary(

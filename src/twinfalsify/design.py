@@ -252,6 +252,26 @@ def build_hypotheses(
     return hyps.reset_index(drop=True), pd.DataFrame(report)
 
 
+def design_on_d0(
+    d0: pd.DataFrame,
+    *,
+    outcomes=OUTCOMES,
+    quantiles: tuple[float, float] = (0.2, 0.8),
+    min_support: int = 10,
+    kinds: tuple[str, ...] = ("causal", "manski"),
+    t_max: int = T_MAX,
+) -> tuple[ActionBins, StateBins, pd.DataFrame, pd.DataFrame]:
+    """Every data-dependent choice, made on D0 only (sample splitting): action bins, B-sets,
+    and the hypotheses with their kept/dropped report."""
+    actions = fit_action_bins(d0, t_max)
+    states = fit_state_bins(d0, outcomes, t_max)
+    hyps, report = build_hypotheses(
+        d0, actions, states, outcomes=outcomes, quantiles=quantiles, min_support=min_support,
+        kinds=kinds, t_max=t_max,
+    )  # fmt: skip
+    return actions, states, hyps, report
+
+
 def padded(hyps: pd.DataFrame, column: str, width: int, fill: int = -2) -> np.ndarray:
     """List column -> (H, width) int array padded with ``fill``."""
     out = np.full((len(hyps), width), fill, dtype=np.int64)
@@ -289,6 +309,7 @@ __all__ = [
     "action_codes",
     "action_space_table",
     "build_hypotheses",
+    "design_on_d0",
     "fit_action_bins",
     "fit_state_bins",
     "padded",

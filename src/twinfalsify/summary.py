@@ -21,6 +21,7 @@ from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
+from twinfalsify.tables import markdown_table
 from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame
 
 
@@ -333,13 +334,7 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
 
 
 def _md(df: pd.DataFrame) -> str:
-    """A small DataFrame as a GitHub Markdown table (no extra dependency)."""
-    cols = [str(c) for c in df.columns]
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for row in df.itertuples(index=False):
-        cells = [f"{v:.3g}" if isinstance(v, float) else str(v) for v in row]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return markdown_table(df, ".3g")
 
 
 def study_summary(
