@@ -14,14 +14,13 @@ from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame  # noqa: E402
 
 
 def main(sm):
-    hyps = read_parquet(sm.input.hypotheses, "hypotheses")
-    counts = read_parquet(sm.input.counts, "observational counts")
-    follow = read_parquet(sm.input.follow, "follower outcomes")
+    hyps, obs = bounds.read_observational_side(
+        sm.input.hypotheses, sm.input.counts, sm.input.follow
+    )
     plan = TwinPlan.from_json(read_json(sm.input.plan))
     states = StateBins.from_json(read_json(sm.input.bins))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     nodes = load_nodes(read_parquet(sm.input.runs, "twin runs"), plan, x0)
-    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     twin, n_failed = bounds.twin_side(hyps, nodes, states)
     samples = bounds.hypothesis_samples(hyps, obs, twin)
     cfg = json.loads(sm.params.testing)

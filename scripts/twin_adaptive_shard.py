@@ -27,10 +27,9 @@ class _Log:
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
-    hyps = read_parquet(sm.input.hypotheses, "hypotheses")
-    counts = read_parquet(sm.input.counts, "observational counts")
-    follow = read_parquet(sm.input.follow, "follower outcomes")
-    obs = bounds.observational_side_from_tables(hyps, counts, follow)
+    hyps, obs = bounds.read_observational_side(
+        sm.input.hypotheses, sm.input.counts, sm.input.follow
+    )
     runs_cfg, testing = json.loads(sm.params.runs), json.loads(sm.params.testing)
     twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)

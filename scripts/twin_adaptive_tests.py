@@ -19,10 +19,9 @@ from twinfalsify.twins.plan import TwinPlan, status_summary, x0_frame  # noqa: E
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
-    hyps = read_parquet(sm.input.hypotheses, "hypotheses")
-    counts = read_parquet(sm.input.counts, "observational counts")
-    follow = read_parquet(sm.input.follow, "follower outcomes")
-    obs = bounds.observational_side_from_tables(hyps, counts, follow)
+    hyps, obs = bounds.read_observational_side(
+        sm.input.hypotheses, sm.input.counts, sm.input.follow
+    )
     rows = pd.concat([read_parquet(p, "adaptive twin shard") for p in sm.input.runs],
                      ignore_index=True)
     decisions = pd.concat([read_parquet(p, "adaptive decisions") for p in sm.input.decisions],

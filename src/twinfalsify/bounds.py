@@ -94,6 +94,21 @@ def observational_side_from_tables(
     return ObservationalSide(n=n.to_numpy(np.int64), follow=follow_side)
 
 
+def read_observational_side(
+    hypotheses: str, counts: str, follow: str
+) -> tuple[pd.DataFrame, ObservationalSide]:
+    """Read the design's hypotheses and the observational_side rule's two tables."""
+    from twinfalsify.io import read_parquet
+
+    hyps = read_parquet(hypotheses, "hypotheses")
+    obs = observational_side_from_tables(
+        hyps,
+        read_parquet(counts, "observational counts"),
+        read_parquet(follow, "follower outcomes"),
+    )
+    return hyps, obs
+
+
 @dataclass(frozen=True)
 class TwinNodes:
     """Twin runs in prefix-tree form: one row per (node = a_1:s, X_0).

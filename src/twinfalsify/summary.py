@@ -50,16 +50,15 @@ def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
                "results"} - set(paths)  # fmt: skip
     if missing:
         raise ContractError(f"load_study_twin: missing input path(s) {sorted(missing)}")
-    hyps = read_parquet(paths["hypotheses"], "hypotheses")
-    counts = read_parquet(paths["counts"], "observational counts")
-    follow = read_parquet(paths["follow"], "follower outcomes")
+    hyps, obs = bounds.read_observational_side(
+        paths["hypotheses"], paths["counts"], paths["follow"]
+    )
     d = read_parquet(paths["d"], "D")
     plan = TwinPlan.from_json(read_json(paths["plan"]))
     states = StateBins.from_json(read_json(paths["bins"]))
     nodes = load_nodes(
         read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids)
     )
-    obs = bounds.observational_side_from_tables(hyps, counts, follow)
     twin, _ = bounds.twin_side(hyps, nodes, states)
     return StudyTwin(
         hyps=hyps,
