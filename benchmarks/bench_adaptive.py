@@ -37,11 +37,11 @@ import yaml
 from twinfalsify import bounds, design
 from twinfalsify.falsify import make_methods, run_tests
 from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, node_runs
+from twinfalsify.runs import plan as tp
+from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, STAY_ID, to_array
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
-from twinfalsify.twins import plan as tp
-from twinfalsify.twins.registry import make_twin
 
 
 @dataclass

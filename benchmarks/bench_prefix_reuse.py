@@ -41,8 +41,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
 from twinfalsify import design  # noqa: E402
+from twinfalsify.runs import plan as tp  # noqa: E402
 from twinfalsify.schema import FEATURES, STAY_ID  # noqa: E402
-from twinfalsify.twins import plan as tp  # noqa: E402
 
 
 def study_inputs(config: Path, results: Path | None) -> tuple[pd.DataFrame, tp.TwinPlan, str]:
@@ -94,12 +94,12 @@ def pulse_fake_engine() -> dict[str, int]:
 
     The worker runs in-process (the fake engine matches recorded patients on
     their height, which is not a study feature the runner sends), fed in the
-    runner's order (twins.runner.plan_groups: runs grouped by X_0, dose
+    runner's order (runs.runner.plan_groups: runs grouped by X_0, dose
     sequences depth-first), which is what lets it branch shared prefixes.
     """
     sys.path.insert(0, str(ROOT / "tests" / "fakes"))
-    from twinfalsify.twins.pulse_worker import PulseWorker
-    from twinfalsify.twins.runner import plan_groups
+    from twinfalsify.pulse.worker import PulseWorker
+    from twinfalsify.runs.runner import plan_groups
 
     fixture = ROOT / "tests" / "fixtures" / "pulse-reference"
     patients = pd.read_csv(fixture / "patients.csv").set_index("patient_id")

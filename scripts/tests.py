@@ -10,7 +10,7 @@ from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import StateBins  # noqa: E402
 from twinfalsify.falsify import make_methods, run_tests  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
-from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, load_nodes, x0_frame  # noqa: E402
 
 
 def main(sm):

@@ -9,9 +9,9 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import ActionBins, StateBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
-from twinfalsify.twins.adaptive import run_adaptive_shard  # noqa: E402
-from twinfalsify.twins.plan import TwinPlan, x0_frame  # noqa: E402
-from twinfalsify.twins.registry import make_twin  # noqa: E402
+from twinfalsify.runs.adaptive import run_adaptive_shard  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, x0_frame  # noqa: E402
+from twinfalsify.runs.registry import make_twin  # noqa: E402
 
 
 class _Log:

@@ -12,9 +12,9 @@ import pandas as pd  # noqa: E402
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import StateBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
+from twinfalsify.runs.adaptive import adaptive_results, load_simulated  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, status_summary, x0_frame  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
-from twinfalsify.twins.adaptive import adaptive_results, load_simulated  # noqa: E402
-from twinfalsify.twins.plan import TwinPlan, status_summary, x0_frame  # noqa: E402
 
 
 def main(sm):

@@ -7,8 +7,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify.io import log, read_parquet, run_rule, write_json  # noqa: E402
+from twinfalsify.runs.plan import plan_twin_runs  # noqa: E402
 from twinfalsify.schema import STAY_ID  # noqa: E402
-from twinfalsify.twins.plan import plan_twin_runs  # noqa: E402
 
 
 def main(sm):

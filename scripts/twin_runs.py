@@ -8,8 +8,8 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 import pandas as pd  # noqa: E402
 
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, status_summary  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
-from twinfalsify.twins.plan import TwinPlan, status_summary  # noqa: E402
 
 
 def main(sm):

@@ -8,8 +8,8 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 from twinfalsify.design import ActionBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
-from twinfalsify.twins.plan import TwinPlan, run_shard, x0_frame  # noqa: E402
-from twinfalsify.twins.registry import make_twin  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, run_shard, x0_frame  # noqa: E402
+from twinfalsify.runs.registry import make_twin  # noqa: E402
 
 
 def main(sm):

@@ -12,9 +12,9 @@ from study_helpers import build_study
 
 from twinfalsify import bounds
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
-from twinfalsify.twins import plan as tp
-from twinfalsify.twins.adaptive import run_adaptive_shard
-from twinfalsify.twins.registry import make_twin
+from twinfalsify.runs import plan as tp
+from twinfalsify.runs.adaptive import run_adaptive_shard
+from twinfalsify.runs.registry import make_twin
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import os
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,21 +20,22 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from fakes import FAULTY_TWIN
 from slurm.runs import run
 
 from twinfalsify import design
 from twinfalsify.io import config_error
+from twinfalsify.runs.runner import simulate_via_protocol
 from twinfalsify.schema import FEATURES, STAY_ID, TIME, ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
-from twinfalsify.twins.runner import simulate_via_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 CORPUS = Path(__file__).with_name("bad_inputs")
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 BASE_CONFIG = ROOT / "config" / "test.yaml"
 CONFIG_CASES = yaml.safe_load((CORPUS / "configs.yaml").read_text())
-FAULTY = [sys.executable, "-m", "twinfalsify.twins.faulty"]
+FAULTY = FAULTY_TWIN
 ENV = {"PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 
 
@@ -223,7 +223,7 @@ def test_twin_executable_that_does_not_exist():
 def test_unusable_twin_is_refused_before_any_run(mode, fragment):
     with pytest.raises(ContractError) as err:
         simulate_via_protocol([*FAULTY, f"--mode={mode}"], *_inputs(), env=ENV, progress=False)
-    assert fragment in str(err.value) and "twinfalsify.twins.faulty" in str(err.value)
+    assert fragment in str(err.value) and "faulty_twin.py" in str(err.value)
 
 
 @pytest.mark.parametrize(

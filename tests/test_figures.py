@@ -20,10 +20,10 @@ from study_helpers import build_study
 from twinfalsify import bounds, figures, summary, tables
 from twinfalsify.design import WHOLE_SPACE, action_codes, state_codes
 from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.runs import plan as tp
+from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, to_array
 from twinfalsify.sources.synthetic import SyntheticWorld
-from twinfalsify.twins import plan as tp
-from twinfalsify.twins.registry import make_twin
 
 TMP = tempfile.mkdtemp(prefix="twinfalsify-figures-")
 

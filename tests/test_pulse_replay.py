@@ -11,8 +11,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from twinfalsify.pulse.replay import RecordedPulse
 from twinfalsify.schema import FEATURES
-from twinfalsify.twins.recorded_pulse import RecordedPulse
 
 TESTS = Path(__file__).resolve().parent
 FIXTURE = TESTS / "fixtures" / "pulse-reference"
@@ -89,7 +89,7 @@ def test_small_study_end_to_end_through_the_protocol():
     meta.append(("P1", "unheld", 1))
     lines = [{"op": "hello", "protocol": 1}, *reqs, {"op": "shutdown"}]
     proc = subprocess.run(
-        [sys.executable, "-m", "twinfalsify.twins.recorded_pulse", "--data", str(FIXTURE)],
+        [sys.executable, "-m", "twinfalsify.pulse.replay", "--data", str(FIXTURE)],
         input="".join(json.dumps(m) + "\n" for m in lines), capture_output=True, text=True,
         env={**os.environ, "PYTHONPATH": str(SRC)}, timeout=120)
     assert proc.returncode == 0, proc.stderr

@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from twinfalsify.pulse import units as pu
 from twinfalsify.schema import FEATURES, INIT_FEATURES, ContractError
-from twinfalsify.twins import pulse_units as pu
 
 TESTS = Path(__file__).resolve().parent
 FIXTURE = TESTS / "fixtures" / "pulse-reference"

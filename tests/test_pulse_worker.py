@@ -23,14 +23,14 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from twinfalsify.schema import FEATURES
-from twinfalsify.twins import pulse_units as pu
-from twinfalsify.twins.pulse_worker import (
+from twinfalsify.pulse import units as pu
+from twinfalsify.pulse.worker import (
     PulseWorker,
     is_feeding_hour,
     norepinephrine_ml_per_min,
     saline_ml_per_min,
 )
+from twinfalsify.schema import FEATURES
 
 TESTS = Path(__file__).resolve().parent
 FAKES = TESTS / "fakes"
@@ -221,7 +221,7 @@ def test_bad_requests_raise_clear_errors(worker):
 
 def test_module_imports_without_pulse():
     code = ("import sys; sys.modules['pulse'] = None; "
-            "import twinfalsify.twins.pulse_worker as w; print(w.PulseWorker.__name__)")
+            "import twinfalsify.pulse.worker as w; print(w.PulseWorker.__name__)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(SRC)}, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "PulseWorker", out.stderr
@@ -231,7 +231,7 @@ def test_worker_subprocess_over_the_protocol(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)])}
     lines = [{"op": "hello", "protocol": 1}] + [request(r) for r in RUN_IDS] + [{"op": "shutdown"}]
     proc = subprocess.run(
-        [sys.executable, "-m", "twinfalsify.twins.pulse_worker", "--state-cache",
+        [sys.executable, "-m", "twinfalsify.pulse.worker", "--state-cache",
          str(tmp_path / "cache")],
         input="".join(json.dumps(m) + "\n" for m in lines), capture_output=True, text=True,
         env=env, timeout=120)

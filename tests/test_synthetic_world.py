@@ -6,10 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from twinfalsify import bounds, design
+from twinfalsify import bounds, design, noise
 from twinfalsify.schema import FEATURES, STAY_ID, TIME, to_array, validate_trajectories
 from twinfalsify.sources.synthetic import SyntheticWorld
-from twinfalsify.twins import noise
 
 WORLD = SyntheticWorld(n_stays=40_000)
 

@@ -26,10 +26,7 @@ from test_twin_runner import (  # shared helpers and the no-leftover-processes c
     stamps,
 )
 
-from twinfalsify.schema import FEATURE_BY_NAME, FEATURES
-from twinfalsify.sources.synthetic import generate
-from twinfalsify.twins.base import SimResult
-from twinfalsify.twins.protocol import (
+from twinfalsify.runs.protocol import (
     ProtocolError,
     check_hello,
     check_result,
@@ -38,10 +35,13 @@ from twinfalsify.twins.protocol import (
     encode,
     serve_forever,
 )
-from twinfalsify.twins.protocol_twin import ProtocolTwin
-from twinfalsify.twins.registry import make_twin
-from twinfalsify.twins.runner import simulate_via_protocol
-from twinfalsify.twins.serve import BATCH_MAX, batch_handler, handlers
+from twinfalsify.runs.protocol_twin import ProtocolTwin
+from twinfalsify.runs.registry import make_twin
+from twinfalsify.runs.runner import simulate_via_protocol
+from twinfalsify.runs.serve import BATCH_MAX, batch_handler, handlers
+from twinfalsify.schema import FEATURE_BY_NAME, FEATURES
+from twinfalsify.sources.synthetic import generate
+from twinfalsify.twins.base import SimResult
 
 UNITS = {name: f.unit for name, f in FEATURE_BY_NAME.items()}
 HR = FEATURES.index("HR")

@@ -10,15 +10,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from fakes import FAULTY_TWIN
+from fakes.faulty_twin import expected
 from study_helpers import build_study
 
 from twinfalsify.design import ActionBins
+from twinfalsify.pulse.replay import RecordedPulse
+from twinfalsify.runs import plan as tp
+from twinfalsify.runs.protocol_twin import ProtocolTwin
+from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, STAY_ID
-from twinfalsify.twins import plan as tp
-from twinfalsify.twins.faulty import expected
-from twinfalsify.twins.protocol_twin import ProtocolTwin
-from twinfalsify.twins.recorded_pulse import RecordedPulse
-from twinfalsify.twins.registry import make_twin
 
 TESTS = Path(__file__).resolve().parent
 PULSE_FIXTURE = TESTS / "fixtures" / "pulse-reference"
@@ -55,7 +56,7 @@ def test_protocol_twin_is_bit_identical_to_in_process(small_study, spec):
     local = make_twin("t", spec, ctx)
     served = make_twin("t", {**spec, "protocol": True, "workers": 2, "timeout_s": 30}, ctx)
     assert isinstance(served, ProtocolTwin) and served.workers == 2
-    assert "twinfalsify.twins.serve" in served.command
+    assert "twinfalsify.runs.serve" in served.command
     served.progress = False
     a, b = _all_shards(local, study), _all_shards(served, study)
     assert len(a) == len(study.plan.nodes) * len(study.plan.x0_stay_ids)
@@ -87,7 +88,7 @@ def test_faulty_command_twin_every_node_accounted(small_study):
     plan = _hand_plan(x0[STAY_ID].tolist(), ["1-2-3", "1-2-4", "7"])
     seeds = [int(s) for s in plan.run_seeds()]
     modes = ["irreversible", "crash", "hang", "garbage", "init_failed", "ok", "clamp"]
-    cmd = [sys.executable, "-m", "twinfalsify.twins.faulty", "--irreversible-hour", "2"]
+    cmd = [*FAULTY_TWIN, "--irreversible-hour", "2"]
     for mode, seed in zip(modes, seeds, strict=True):
         if mode != "ok":
             cmd += ["--mode", f"{mode}:{seed}"]
@@ -143,7 +144,7 @@ def test_recorded_pulse_through_the_shard_runner():
     plan = _hand_plan([1, 2, 3], leaves)
     twin = make_twin("recorded-pulse", {
         "kind": "command", "workers": 2, "timeout_s": 30, "retries": 0,
-        "command": [sys.executable, "-m", "twinfalsify.twins.recorded_pulse",
+        "command": [sys.executable, "-m", "twinfalsify.pulse.replay",
                     "--data", str(PULSE_FIXTURE)], "env": ENV}, None)  # fmt: skip
     twin.progress = False
     runs = tp.run_shard(twin, plan, 0, x0, actions, log=io.StringIO())

@@ -12,6 +12,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from fakes import FAULTY_TWIN
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -56,7 +57,7 @@ def test_served_builtin_twin_gives_the_in_process_results(tmp_path):
 
 
 def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_path):
-    cmd = [sys.executable, "-m", "twinfalsify.twins.faulty", "--mode", "slow", "--delay", "0.02"]
+    cmd = [*FAULTY_TWIN, "--mode", "slow", "--delay", "0.02"]
     spec = {"kind": "command", "command": cmd, "workers": 1, "timeout_s": 30,
             "env": {"PYTHONPATH": str(ROOT / "src")}}
     config = _config(tmp_path, {"slow": spec}, runs_per_sequence=80, n_shards=3)

@@ -18,9 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from twinfalsify.schema import FEATURE_BY_NAME, FEATURES
-from twinfalsify.twins.base import SimResult
-from twinfalsify.twins.protocol import (
+from twinfalsify.runs.protocol import (
     ProtocolError,
     check_hello,
     check_result,
@@ -28,8 +26,10 @@ from twinfalsify.twins.protocol import (
     encode,
     serve_forever,
 )
-from twinfalsify.twins.runner import simulate_via_protocol
-from twinfalsify.twins.serve import handlers
+from twinfalsify.runs.runner import simulate_via_protocol
+from twinfalsify.runs.serve import handlers
+from twinfalsify.schema import FEATURE_BY_NAME, FEATURES
+from twinfalsify.twins.base import SimResult
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
@@ -233,8 +233,8 @@ def test_served_twin_subprocess_equals_in_process(tmp_path):
         import numpy as np, pandas as pd
         from twinfalsify.schema import FEATURES
         from twinfalsify.twins.base import SimResult
-        from twinfalsify.twins.protocol import serve_forever
-        from twinfalsify.twins.serve import handlers
+        from twinfalsify.runs.protocol import serve_forever
+        from twinfalsify.runs.serve import handlers
         HR = FEATURES.index("HR")
         class ArithmeticTwin""") + source + textwrap.dedent("""
         sys.exit(serve_forever(*handlers(ArithmeticTwin())))
@@ -254,10 +254,9 @@ def test_served_twin_subprocess_equals_in_process(tmp_path):
 
 
 def test_serve_builtin_twin_subprocess_equals_in_process(tmp_path):
-    """``python -m twinfalsify.twins.serve`` with 2 workers == the builtin twin in process."""
-    registry = pytest.importorskip(
-        "twinfalsify.twins.registry", reason="twins.registry (the lead's factory) not merged yet"
-    )
+    """``python -m twinfalsify.runs.serve`` with 2 workers == the builtin twin in process."""
+    from twinfalsify.runs import registry
+
     (tmp_path / "twin_context.json").write_text(
         json.dumps({"source": {"kind": "synthetic", "synthetic": {}}})
     )
@@ -275,7 +274,7 @@ def test_serve_builtin_twin_subprocess_equals_in_process(tmp_path):
                       rng.choice([0.0, 0.1, 0.5], (n, 4))], axis=2)
     seeds = (np.arange(n) // 4).astype(np.uint64)  # 4 sequences per X_0 draw
     direct = twin.simulate(x0, doses, seeds)
-    cmd = [sys.executable, "-m", "twinfalsify.twins.serve", "biased", "--spec",
+    cmd = [sys.executable, "-m", "twinfalsify.runs.serve", "biased", "--spec",
            json.dumps(spec), "--context", str(tmp_path)]
     served = simulate_via_protocol(cmd, x0, doses, seeds, workers=2, env=ENV, progress=False)
     np.testing.assert_array_equal(served.status, direct.status)

@@ -1,6 +1,6 @@
 """The twin runner against real subprocesses: faults, retries, timeouts, parallelism.
 
-Every test drives ``python -m twinfalsify.twins.faulty`` (or a shell wrapper
+Every test drives ``python tests/fakes/faulty_twin.py`` (or a shell wrapper
 around it) as a real subprocess and checks that every requested run comes back
 exactly once with the right status, values computed independently from the
 faulty twin's documented formula, and no child process left behind.
@@ -17,16 +17,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from fakes import FAULTY_TWIN
+from fakes.faulty_twin import expected
 
+from twinfalsify.runs import runner
+from twinfalsify.runs.protocol_twin import ProtocolTwin
+from twinfalsify.runs.runner import plan_groups, simulate_via_protocol
 from twinfalsify.schema import FEATURES, TWIN_STATUSES, ContractError
-from twinfalsify.twins import runner
-from twinfalsify.twins.faulty import expected
-from twinfalsify.twins.protocol_twin import ProtocolTwin
-from twinfalsify.twins.runner import plan_groups, simulate_via_protocol
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 ENV = {"PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-FAULTY = [sys.executable, "-m", "twinfalsify.twins.faulty"]
+FAULTY = FAULTY_TWIN
 HR = FEATURES.index("HR")
 
 
@@ -274,7 +275,7 @@ def test_bad_hello_is_a_contract_error(mode, fragment):
         simulate_via_protocol([*FAULTY, f"--mode={mode}"], x0, doses, seeds, workers=2,
                               env=ENV, progress=False)
     assert fragment in str(err.value)
-    assert "twinfalsify.twins.faulty" in str(err.value)
+    assert "faulty_twin.py" in str(err.value)
 
 
 def test_hours_beyond_twin_max_hours_rejected():
@@ -316,7 +317,6 @@ def test_progress_line(monkeypatch, capsys):
 
 def test_protocol_twin_interface():
     x0, doses, seeds = make_inputs(3)
-    assert runner.ProtocolTwin is ProtocolTwin  # also importable from twins.runner
     twin = ProtocolTwin("faulty", FAULTY, workers=2, env=ENV, progress=False)
     hello = twin.hello()
     assert hello["name"] == "faulty" and hello["protocol"] == 1
@@ -347,7 +347,7 @@ def test_sigterm_to_the_caller_kills_its_workers(tmp_path):
     script.write_text(
         "import sys, numpy as np, pandas as pd\n"
         "from twinfalsify.schema import FEATURES\n"
-        "from twinfalsify.twins.runner import simulate_via_protocol\n"
+        "from twinfalsify.runs.runner import simulate_via_protocol\n"
         "x0 = pd.DataFrame({f: [70.0, 71.0] for f in FEATURES})\n"
         f"simulate_via_protocol({[*FAULTY, '--mode=hang']!r}, x0, np.ones((2, 2, 2)),\n"
         "    np.array([1, 2], dtype=np.uint64), workers=2, timeout_s=60, progress=False)\n"

@@ -20,9 +20,9 @@ from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes,
 from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
+from twinfalsify.runs.plan import TwinPlan, load_nodes, x0_frame
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
 from twinfalsify.tables import markdown_table
-from twinfalsify.twins.plan import TwinPlan, load_nodes, x0_frame
 
 
 @dataclass(frozen=True)
@@ -280,7 +280,7 @@ def confounding_frame(
     The gap between the two is confounding bias: E[X_1 | A_1 = a] != E[X_1(a)] because the
     unmeasured severity drives both the dose and the response (Cornish et al. 2026, Sec. 2).
     """
-    from twinfalsify.twins import noise
+    from twinfalsify import noise
 
     if outcome not in FEATURES:
         raise ContractError(f"figures.confounding.outcome: unknown feature {outcome!r}")

@@ -39,8 +39,6 @@ def twin_dir(twin="{twin}"):
 
 
 def all_outputs():
-    import os
-
     # adaptive mode simulates only the runs that decide something: outputs that need every
     # twin run (bounds over time, histograms, sensitivity, the summary) are not built then
     adaptive = config["twin_runs"].get("mode", "fixed") == "adaptive"
@@ -54,17 +52,9 @@ def all_outputs():
         out += [f"{R}/summary.md", f"{R}/summary.html"]
     if config["source"]["kind"] == "synthetic":  # the truth is known only there
         out += [f"{R}/figures/confounding.{ext}" for ext in ("png", "pdf")]
-    # the sensitivity sweep comes with the statistics module; include it once it is there
-    has_sweep = os.path.exists(
-        os.path.join(
-            workflow.basedir, "src", "twinfalsify", "inference", "sensitivity.py"
-        )
-    )
     figures = ["pvalues", "sample_sizes", "propensity"]
     if not adaptive:
-        figures += ["longitudinal", "histograms"] + (
-            ["sensitivity"] if has_sweep else []
-        )
+        figures += ["longitudinal", "histograms", "sensitivity"]
     for twin in TWINS:
         out += [
             f"{twin_dir(twin)}/results.parquet",

@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from twinfalsify import noise
 from twinfalsify.schema import DOSES, FEATURES, IV_FLUID, STAY_ID, T_MAX, TIME, VASOPRESSOR
-from twinfalsify.twins import noise
 
 # Physiological features simulated directly (MeanBP is derived).
 DYNAMIC = (

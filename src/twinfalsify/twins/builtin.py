@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from twinfalsify import noise
 from twinfalsify.schema import (
     FEATURES,
     INIT_FEATURES,
@@ -17,7 +18,6 @@ from twinfalsify.schema import (
     to_array,
 )
 from twinfalsify.sources.synthetic import SyntheticWorld, g_iv, g_v
-from twinfalsify.twins import noise
 from twinfalsify.twins.base import SimResult
 
 DEMOGRAPHICS = ("age", "sex", "weight")

@@ -1,7 +1,7 @@
 """A FAKE of the Pulse Physiology Engine's Python package (``pulse``), test fixture only.
 
 It mimics exactly the parts of Pulse 4.2's Python API that
-``twinfalsify.twins.pulse_worker`` uses, and serves the values RECORDED from a real
+``twinfalsify.pulse.worker`` uses, and serves the values RECORDED from a real
 Pulse 4.2 engine (tests/fixtures/pulse-reference/runs.csv), so the worker's
 tests run against real numbers. Put ``tests/fakes`` on sys.path to import it.
 

@@ -84,7 +84,7 @@ def make_twin(
             name=name,
         )
     if kind == "command":
-        from twinfalsify.twins.protocol_twin import ProtocolTwin
+        from twinfalsify.runs.protocol_twin import ProtocolTwin
 
         command = spec.get("command")
         if isinstance(command, str):
@@ -106,7 +106,7 @@ def _runner_options(spec: dict[str, Any], timeout_s: float) -> dict[str, Any]:
 
 
 def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict | None) -> Twin:
-    """A builtin twin run as ``python -m twinfalsify.twins.serve`` subprocesses (ProtocolTwin).
+    """A builtin twin run as ``python -m twinfalsify.runs.serve`` subprocesses (ProtocolTwin).
 
     spec: the builtin spec plus ``protocol: true`` and the runner options
     ``workers`` (processes), ``timeout_s`` (per run, default 60 s), ``retries``,
@@ -117,7 +117,7 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
     served twin computes exactly what the in-process one does (builtin twins
     key their noise by seed and dose prefix), so results are bit-identical.
     """
-    from twinfalsify.twins.protocol_twin import ProtocolTwin
+    from twinfalsify.runs.protocol_twin import ProtocolTwin
 
     if context is None or isinstance(context, dict):
         raise ContractError(
@@ -129,7 +129,7 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
         raise ContractError(f"twin context {path} does not exist")
     inner = {k: v for k, v in spec.items() if k not in RUNNER_KEYS}
     command = [
-        sys.executable, "-m", "twinfalsify.twins.serve", name,
+        sys.executable, "-m", "twinfalsify.runs.serve", name,
         "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
     ]  # fmt: skip
     opts = _runner_options(spec, 60.0)

@@ -47,9 +47,7 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import schema
-from twinfalsify.schema import FEATURES, ContractError
-from twinfalsify.twins.base import SimResult, empty_features
-from twinfalsify.twins.protocol import (
+from twinfalsify.runs.protocol import (
     ProtocolError,
     check_hello,
     check_result,
@@ -57,6 +55,8 @@ from twinfalsify.twins.protocol import (
     decode,
     encode,
 )
+from twinfalsify.schema import FEATURES, ContractError
+from twinfalsify.twins.base import SimResult, empty_features
 
 PROGRESS_INTERVAL_S = 5.0  # at most one progress line per interval
 STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): start-up
@@ -714,12 +714,3 @@ def _report(pool: _Pool, total: int, elapsed: float, final: bool = False) -> Non
     )
     print(line, file=sys.stderr, flush=True)
 
-
-def __getattr__(name: str) -> Any:
-    # ProtocolTwin lives in twins.protocol_twin (which imports this module);
-    # resolved lazily so both import orders work.
-    if name == "ProtocolTwin":
-        from twinfalsify.twins.protocol_twin import ProtocolTwin
-
-        return ProtocolTwin
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,8 +1,8 @@
-"""Serve a builtin twin over the protocol: ``python -m twinfalsify.twins.serve <name>``.
+"""Serve a builtin twin over the protocol: ``python -m twinfalsify.runs.serve <name>``.
 
-    python -m twinfalsify.twins.serve <name> [--spec JSON] [--context DIR]
+    python -m twinfalsify.runs.serve <name> [--spec JSON] [--context DIR]
 
-builds the twin with ``twinfalsify.twins.registry.make_twin(name, spec,
+builds the twin with ``twinfalsify.runs.registry.make_twin(name, spec,
 context_dir)`` and answers protocol v1 requests (docs/twin-protocol.md) on
 stdin/stdout until "shutdown" or end of input. The hello advertises
 ``capabilities.batch`` = BATCH_MAX: a ``simulate_batch`` message is answered
@@ -26,9 +26,9 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import __version__
+from twinfalsify.runs.protocol import serve_forever
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES
 from twinfalsify.twins.base import Twin
-from twinfalsify.twins.protocol import serve_forever
 
 BATCH_MAX = 1000  # runs per simulate_batch message a served builtin twin accepts
 
@@ -173,9 +173,9 @@ def handlers(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="twinfalsify.twins.serve", description=__doc__,
+    parser = argparse.ArgumentParser(prog="twinfalsify.runs.serve", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("name", help="builtin twin name (see twinfalsify.twins.registry)")
+    parser.add_argument("name", help="builtin twin name (see twinfalsify.runs.registry)")
     parser.add_argument("--spec", default="{}", help="twin spec as a JSON object")
     parser.add_argument("--context", type=Path, default=None,
                         help="directory with the study's files a fitted twin needs")
@@ -191,7 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     protocol_out, sys.stdout = sys.stdout, sys.stderr
     # Imported here: the registry pulls in every builtin twin and is only
     # needed in the served process.
-    from twinfalsify.twins.registry import make_twin
+    from twinfalsify.runs.registry import make_twin
 
     twin = make_twin(args.name, spec, args.context)
     print(f"serving twin {twin.name!r} (protocol v1, batch {BATCH_MAX})", file=sys.stderr,

@@ -1,6 +1,6 @@
 """The replay twin ``recorded-pulse``: recorded real Pulse 4.2 runs served over protocol v1.
 
-    python -m twinfalsify.twins.recorded_pulse [--data DIR]
+    python -m twinfalsify.pulse.replay [--data DIR]
 
 DIR holds ``patients.csv`` and ``runs.csv`` as recorded from a real Pulse 4.2
 engine (README of the pulse-reference data). A ``simulate`` request is answered
@@ -27,15 +27,15 @@ from typing import Any
 
 import pandas as pd
 
-from twinfalsify.schema import FEATURE_TABLE, INIT_FEATURES, T_MAX, ContractError
-from twinfalsify.twins import protocol
-from twinfalsify.twins.pulse_units import (
+from twinfalsify.pulse.units import (
     load_conversions,
     load_physiological_limits,
     physiological_violation,
     pulse_conversions,
     to_study_features,
 )
+from twinfalsify.runs import protocol
+from twinfalsify.schema import FEATURE_TABLE, INIT_FEATURES, T_MAX, ContractError
 
 NAME = "recorded-pulse"
 DATA_ENV = "TWINFALSIFY_PULSE_REFERENCE"

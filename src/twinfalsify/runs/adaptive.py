@@ -35,9 +35,9 @@ from twinfalsify.inference.sequential import (
     node_runs,
     twin_runs_indexed,
 )
+from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
-from twinfalsify.twins.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
 
 DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile"}
 DECISION_COLUMNS = (

@@ -1,6 +1,6 @@
 """Pulse <-> study units, Pulse's accepted patient baselines (the clamp table) and
 the physiological limits that mark a collapsed engine state. All three are data
-files in ``twinfalsify/data/pulse/``; this module only loads and applies them.
+files in ``twinfalsify/pulse/data/``; this module only loads and applies them.
 
 Conversion (one row of ``conversions.csv`` per study feature)::
 
@@ -50,8 +50,8 @@ SOURCES = ("x0", "physiology", "patient", "liquid_compartment_substance")
 
 
 def data_path(name: str) -> Path:
-    """Path of a packaged table in twinfalsify/data/pulse/."""
-    return Path(str(resources.files("twinfalsify") / "data" / "pulse" / name))
+    """Path of a packaged table in twinfalsify/pulse/data/."""
+    return Path(str(resources.files("twinfalsify.pulse") / "data" / name))
 
 
 def _read_csv(path: Path, required: Iterable[str]) -> list[dict[str, str]]:

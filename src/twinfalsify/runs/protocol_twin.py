@@ -1,7 +1,7 @@
 """ProtocolTwin: the Twin interface (twins.base.Twin) backed by a subprocess command.
 
 The command speaks the twin protocol v1 (docs/twin-protocol.md); runs go
-through ``twins.runner.simulate_via_protocol`` (worker pool, timeouts,
+through ``runs.runner.simulate_via_protocol`` (worker pool, timeouts,
 restarts, retries, one status per run). ``batch_size`` caps the runs per
 ``simulate_batch`` message for a twin that advertises batches.
 """
@@ -16,14 +16,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from twinfalsify.schema import FEATURES
-from twinfalsify.twins.base import SimResult
-from twinfalsify.twins.runner import (
+from twinfalsify.runs.runner import (
     DEFAULT_BATCH_SIZE,
     _Pool,
     resolve_command,
     simulate_via_protocol,
 )
+from twinfalsify.schema import FEATURES
+from twinfalsify.twins.base import SimResult
 
 
 class ProtocolTwin:

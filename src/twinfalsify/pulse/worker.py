@@ -1,11 +1,11 @@
 """The Pulse Physiology Engine twin: a protocol-v1 worker driving Pulse's Python API.
 
-    python -m twinfalsify.twins.pulse_worker [--state-cache DIR] [--engine-module NAME]
+    python -m twinfalsify.pulse.worker [--state-cache DIR] [--engine-module NAME]
                                              [--data-root DIR]
 
-Per ``simulate`` request (see twins/protocol.py):
+Per ``simulate`` request (see runs/protocol.py):
 
-1. X_0 -> Pulse patient with ``pulse_units.clamp_x0`` (Pulse 4.2 refuses baselines
+1. X_0 -> Pulse patient with ``pulse.units.clamp_x0`` (Pulse 4.2 refuses baselines
    outside init_limits.csv; every change is returned in ``clamped``).
 2. Stabilise (``initialize_engine``, 11-14 s on real Pulse) once per patient and
    save the state to ``--state-cache`` (file name = hash of the init values and the
@@ -48,9 +48,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-from twinfalsify.schema import FEATURE_TABLE, T_MAX, ContractError
-from twinfalsify.twins import protocol
-from twinfalsify.twins.pulse_units import (
+from twinfalsify.pulse.units import (
     Conversion,
     InitLimits,
     PatientInit,
@@ -63,6 +61,8 @@ from twinfalsify.twins.pulse_units import (
     pulse_conversions,
     to_study_features,
 )
+from twinfalsify.runs import protocol
+from twinfalsify.schema import FEATURE_TABLE, T_MAX, ContractError
 
 HOUR_S = 3600.0
 SALINE_BAG_ML = 5000.0

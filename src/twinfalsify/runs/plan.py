@@ -22,10 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from twinfalsify import noise
 from twinfalsify.bounds import TwinNodes
 from twinfalsify.design import ActionBins
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
-from twinfalsify.twins import noise
 from twinfalsify.twins.base import Twin
 
 NODE_COLUMNS = ("node", "t", "init_stay_id", "status", "message", "clamped", *FEATURES)
@@ -128,7 +128,7 @@ def _simulate_leaves(
     a save/restore twin branch shared prefixes. In-process twins get one
     vectorised call per leaf.
     """
-    from twinfalsify.twins.protocol_twin import ProtocolTwin
+    from twinfalsify.runs.protocol_twin import ProtocolTwin
 
     m = len(x0)
     seqs = [parse_node(leaf) for leaf in leaves]

@@ -1,4 +1,4 @@
-"""A protocol twin for fault injection: ``python -m twinfalsify.twins.faulty --mode ...``.
+"""A protocol twin for fault injection: ``python tests/fakes/faulty_twin.py --mode ...``.
 
 Good runs return a deterministic, prefix-consistent trajectory: for feature f
 at the end of hour h,
@@ -52,8 +52,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from twinfalsify.runs.protocol import PROTOCOL_VERSION, ProtocolError, decode, encode
 from twinfalsify.schema import FEATURE_TABLE, FEATURES
-from twinfalsify.twins.protocol import PROTOCOL_VERSION, ProtocolError, decode, encode
 
 RUN_MODES = (
     "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
@@ -162,7 +162,7 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="twinfalsify.twins.faulty", description=__doc__,
+    parser = argparse.ArgumentParser(prog="faulty_twin.py", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--mode", action="append", default=[], help="MODE[:SELECTOR]")
     parser.add_argument("--delay", type=float, default=1.0, help="seconds per slow run")
