@@ -92,27 +92,55 @@ def _stays(con) -> pd.DataFrame:
     return df.set_index("icustay_id", drop=False)
 
 
+ONSET_WINDOW = pd.Timedelta(hours=48)  # AI-Clinician: events and onset in [in - 48 h, out + 48 h]
+LAB_WINDOW = pd.Timedelta(days=1)  # AI-Clinician: labs kept in [INTIME - 1 d, OUTTIME + 1 d]
+
+
 def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
-    """Give each hospital-level event (hadm_id, time) an ICU stay: a stay of the same
-    admission with INTIME - 48 h <= time <= OUTTIME + 48 h, or the admission's only stay
-    (AI-Clinician's rule for antibiotics and cultures without ICUSTAY_ID)."""
+    """Give each event (hadm_id, icustay_id or NaN, time) one ICU stay, as AI-Clinician
+    fills icustay ids of antibiotics and cultures (sepsis-3 onset code):
+
+    - an event with an ICUSTAY_ID keeps it (dropped if that stay is not among ``stays``);
+    - otherwise the stay of the same admission with INTIME - 48 h <= time <= OUTTIME + 48 h
+      (the first such stay by INTIME when several qualify), or, when none qualifies, the
+      admission's only stay.
+
+    Returns icustay_id, time (plus the other columns of ``events``)."""
     s = stays[["icustay_id", "hadm_id", "intime", "outtime"]].reset_index(drop=True)
-    m = events.merge(s, on="hadm_id")
+    ev = events.reset_index(drop=True).assign(_row=lambda d: np.arange(len(d)))
+    if "icustay_id" not in ev:
+        ev["icustay_id"] = np.nan
+    has = ev["icustay_id"].notna()
+    direct = ev[has].astype({"icustay_id": "int64"})
+    direct = direct[direct["icustay_id"].isin(s["icustay_id"])]
+    rest = ev[~has].drop(columns="icustay_id")
+    m = rest.merge(s, on="hadm_id")
+    inwin = (m["time"] >= m["intime"] - ONSET_WINDOW) & (m["time"] <= m["outtime"] + ONSET_WINDOW)
+    win = m[inwin].sort_values(["_row", "intime"], kind="stable").drop_duplicates("_row")
     n_per_adm = s.groupby("hadm_id")["icustay_id"].transform("count")
-    only = s.assign(n=n_per_adm).set_index("icustay_id")["n"] == 1
-    inwin = (m["time"] >= m["intime"] - 48 * HOUR) & (m["time"] <= m["outtime"] + 48 * HOUR)
-    m = m[inwin | m["icustay_id"].map(only).to_numpy()]
-    return m[["icustay_id", "time"]]
+    only_ids = set(s.loc[n_per_adm == 1, "icustay_id"])
+    only = m[~m["_row"].isin(win["_row"]) & m["icustay_id"].isin(only_ids)]
+    keep = [c for c in events.columns if c not in ("icustay_id", "hadm_id")]
+    out = pd.concat([direct[["icustay_id", *keep]], win[["icustay_id", *keep]],
+                     only[["icustay_id", *keep]]], ignore_index=True)
+    return out.astype({"icustay_id": "int64"})
 
 
-def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
-    """Onset of suspected infection per ICU stay (icustay_id -> timestamp).
+def suspected_infection(con, stays: pd.DataFrame) -> pd.DataFrame:
+    """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
-    Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE.
-    Cultures: MICROBIOLOGYEVENTS rows, time = CHARTTIME, else CHARTDATE.
+    Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
+    PRESCRIPTIONS.ICUSTAY_ID when given. Cultures: MICROBIOLOGYEVENTS rows (time =
+    CHARTTIME, else CHARTDATE) and CHARTEVENTS rows of the culture items of cultures.csv
+    (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``.
     Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
     decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
-    culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def).
+    culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def). An onset
+    outside [INTIME - 48 h, OUTTIME + 48 h] is dropped (AI-Clinician keeps onsets only in
+    that window; an admission's only stay can otherwise receive events from any time).
+
+    Returns a frame indexed by icustay_id: onset, onset_source ('antibiotic' | 'culture'),
+    antibiotic_time, culture_time.
     """
     ab = data_table("antibiotics.csv")
     inc = ab.loc[ab["kind"] == "name_include", "pattern"].str.lower().tolist()
@@ -122,19 +150,29 @@ def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
     con.register("abx_exc", pd.DataFrame({"p": exc}))
     con.register("abx_routes", pd.DataFrame({"r": routes}))
     abx = con.execute(f"""
-        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, {_ts('STARTDATE')} AS time
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
+               {_ts('STARTDATE')} AS time
         FROM PRESCRIPTIONS pr
         WHERE EXISTS (SELECT 1 FROM abx_inc WHERE contains(lower(pr.DRUG), abx_inc.p))
           AND NOT EXISTS (SELECT 1 FROM abx_exc WHERE contains(lower(pr.DRUG), abx_exc.p))
           AND upper(trim(coalesce(pr.ROUTE, ''))) NOT IN (SELECT r FROM abx_routes)
           AND HADM_ID IS NOT NULL AND STARTDATE IS NOT NULL""").df()
-    cult = con.execute(f"""
-        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id,
+    micro = con.execute(f"""
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, CAST(NULL AS BIGINT) AS icustay_id,
                coalesce({_ts('CHARTTIME')}, {_ts('CHARTDATE')}) AS time
-        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df().dropna()
-    a = _assign_to_stays(abx.dropna(), stays).drop_duplicates()
+        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df()
+    con.register("cult_items", data_table("cultures.csv")[["itemid"]].astype("int64"))
+    chart = con.execute(f"""
+        SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
+               {_ts('CHARTTIME')} AS time
+        FROM CHARTEVENTS
+        WHERE TRY_CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM cult_items)""").df()
+    cult = pd.concat([micro, chart], ignore_index=True)
+    cult = cult[cult["time"].notna() & (cult["hadm_id"].notna() | cult["icustay_id"].notna())]
+    abx = abx[abx["time"].notna()]
+    a = _assign_to_stays(abx, stays).drop_duplicates()
     c = _assign_to_stays(cult, stays).drop_duplicates()
-    onset = {}
+    rows = {}
     cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
     for sid, g in a.groupby("icustay_id"):
         cs = cgroups.get(sid)
@@ -145,23 +183,46 @@ def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
             k = int(np.argmin(d))  # nearest culture (first one on ties, as MATLAB's min)
             gap_h = d[k] / np.timedelta64(1, "h")
             if gap_h <= 24 and t_ab <= cs[k]:
-                onset[sid] = pd.Timestamp(t_ab)
+                rows[sid] = (pd.Timestamp(t_ab), "antibiotic", t_ab, cs[k])
                 break
             if gap_h <= 72 and t_ab >= cs[k]:
-                onset[sid] = pd.Timestamp(cs[k])
+                rows[sid] = (pd.Timestamp(cs[k]), "culture", t_ab, cs[k])
                 break
-    return pd.Series(onset, dtype="datetime64[ns]", name="onset")
+    out = pd.DataFrame.from_dict(rows, orient="index",
+                                 columns=["onset", "onset_source", "antibiotic_time",
+                                          "culture_time"])
+    out.index = out.index.astype("int64")
+    out.index.name = "icustay_id"
+    for col in ("onset", "antibiotic_time", "culture_time"):
+        out[col] = pd.to_datetime(out[col])
+    st = stays.reindex(out.index)
+    inwin = ((out["onset"] >= st["intime"] - ONSET_WINDOW)
+             & (out["onset"] <= st["outtime"] + ONSET_WINDOW))
+    return out[inwin.to_numpy()].sort_index()
 
 
-def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) -> pd.DataFrame:
+# Verbal GCS charted as "intubated" (CareVue 723 '1.0 ET/Trach', MetaVision 223900
+# 'No Response-ETT'): the verbal response cannot be assessed, so the charted 1 is not a
+# measured verbal score (Teasdale & Jennett; the MIMIC Code Repository's GCS concept treats
+# such charting as not assessable). gcs_intubated = "not_assessable" drops the GCS total
+# charted at that instant (CNS SOFA then has no value there); "verbal_1" keeps it as charted.
+INTUBATED_VERBAL = ((723, "%ET/Trach%"), (223900, "No Response-ETT"))
+GCS_INTUBATED = ("not_assessable", "verbal_1")
+
+
+def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
+            gcs_intubated: str = "not_assessable") -> pd.DataFrame:
     """Charted and lab values of ``features`` for ``stays`` between lo and hi (per stay),
-    converted to contract units, outliers deleted. Filtering happens in DuckDB."""
+    converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
+    only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window)."""
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
     win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
                         "hadm_id": stays["hadm_id"].to_numpy(),
                         "lo": lo.reindex(stays.index).to_numpy(),
-                        "hi": hi.reindex(stays.index).to_numpy()})
+                        "hi": hi.reindex(stays.index).to_numpy(),
+                        "lab_lo": (stays["intime"] - LAB_WINDOW).to_numpy(),
+                        "lab_hi": (stays["outtime"] + LAB_WINDOW).to_numpy()})
     con.register("win", win)
     con.register("items_chart", items.loc[items["source"] == "chartevents", ["itemid"]])
     con.register("items_lab", items.loc[items["source"] == "labevents", ["itemid"]])
@@ -177,9 +238,22 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) ->
                'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value
         FROM LABEVENTS l JOIN win w ON CAST(l.HADM_ID AS BIGINT) = w.hadm_id
         WHERE CAST(l.ITEMID AS BIGINT) IN (SELECT itemid FROM items_lab)
-          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lab_lo AND w.lab_hi""").df()
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
+    gcs = ev["feature"].isin(["sofa_gcs", "sofa_gcs_component"])
+    if gcs.any() and gcs_intubated == "not_assessable":
+        cond = " OR ".join(f"(CAST(c.ITEMID AS BIGINT) = {i} AND c.VALUE LIKE '{v}')"
+                           for i, v in INTUBATED_VERBAL)
+        ett = con.execute(f"""
+            SELECT DISTINCT w.icustay_id, {_ts('c.CHARTTIME')} AS time
+            FROM CHARTEVENTS c JOIN win w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+            WHERE ({cond}) AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+        key = pd.MultiIndex.from_frame(ev[["icustay_id", "time"]])
+        hit = key.isin(pd.MultiIndex.from_frame(ett[["icustay_id", "time"]])) if len(ett) else (
+            np.zeros(len(ev), bool))
+        ev = ev[~(gcs.to_numpy() & hit)].reset_index(drop=True)
     # GCS (MetaVision): eye + verbal + motor charted together -> total
     comp = ev[ev["feature"] == "sofa_gcs_component"]
     if len(comp):
@@ -221,8 +295,12 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series) -> tuple[pd.DataFrame, ...]:
     return mv_f, cv_f, mv_v, cv_v
 
 
-def sofa_score(b: pd.DataFrame) -> pd.Series:
-    """SOFA (Vincent et al. 1996) per row from block means, AI-Clinician's thresholds.
+SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
+
+
+def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
+    """SOFA points per organ (Vincent et al. 1996) per row from block means, AI-Clinician's
+    thresholds; columns ``SOFA_ORGANS``.
 
     Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
     sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max), sofa_gcs,
@@ -235,72 +313,116 @@ def sofa_score(b: pd.DataFrame) -> pd.Series:
         return out
     pf, plt, bil = b["pf"], b["sofa_platelets"], b["sofa_bilirubin"]
     mapp, vaso, gcs, cr = b["MeanBP"], b["vaso"].fillna(0), b["sofa_gcs"], b["sofa_creatinine"]
-    resp = pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100])
-    coag = pts([plt > 150, plt < 150, plt < 100, plt < 50, plt < 20])
-    liver = pts([bil < 1.2, bil >= 1.2, bil >= 2, bil >= 6, bil > 12])
-    cardio = pts([mapp >= 70, mapp < 70, mapp < 65, (vaso > 0) & (vaso <= 0.1), vaso > 0.1])
-    cns = pts([gcs > 14, gcs <= 14, gcs <= 12, gcs <= 9, gcs <= 5])
-    renal = pts([cr < 1.2, cr >= 1.2, cr >= 2, cr >= 3.5, cr > 5])
-    return pd.Series(resp + coag + liver + cardio + cns + renal, index=b.index)
+    return pd.DataFrame({
+        "respiration": pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100]),
+        "coagulation": pts([plt > 150, plt < 150, plt < 100, plt < 50, plt < 20]),
+        "liver": pts([bil < 1.2, bil >= 1.2, bil >= 2, bil >= 6, bil > 12]),
+        "cardiovascular": pts([mapp >= 70, mapp < 70, mapp < 65, (vaso > 0) & (vaso <= 0.1),
+                               vaso > 0.1]),
+        "cns": pts([gcs > 14, gcs <= 14, gcs <= 12, gcs <= 9, gcs <= 5]),
+        "renal": pts([cr < 1.2, cr >= 1.2, cr >= 2, cr >= 3.5, cr > 5]),
+    }, index=b.index)
 
 
-def max_sofa(con, stays: pd.DataFrame, onset: pd.Series) -> pd.Series:
-    """Max over 4 h blocks of [onset - 48 h, onset + 24 h) of ``sofa_score`` (block means,
-    no imputation; vasopressor = max NE-equivalent rate running in the block)."""
-    ids = onset.index
-    lo, hi = onset - 48 * HOUR, onset + 24 * HOUR
-    feats = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
-             "sofa_gcs_component", "sofa_creatinine")
-    ev = _events(con, stays.loc[ids], lo, hi, feats)
-    start = lo.rename("start")
+def sofa_score(b: pd.DataFrame) -> pd.Series:
+    """Total SOFA per row: the sum of ``sofa_components``."""
+    return sofa_components(b).sum(axis=1)
+
+
+SOFA_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
+                 "sofa_gcs_component", "sofa_creatinine")
+
+
+def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
+               carry: bool = False, gcs_intubated: str = "not_assessable") -> pd.DataFrame:
+    """SOFA points per organ in 4 h blocks [start + 4 b h, start + 4 (b + 1) h),
+    b = 0..n_blocks - 1, for the stays of ``start`` (index icustay_id).
+
+    Block means of the charted / lab values (no imputation); vasopressor = max
+    NE-equivalent rate running in the block. ``carry``: a component missing in a block takes
+    the stay's last earlier block value (sample-and-hold over blocks, as AI-Clinician's
+    SOFA is computed after sample-and-hold). Returns a frame indexed by (icustay_id, blk)
+    with ``SOFA_ORGANS`` and ``sofa``."""
+    ids = start.index
+    lo, hi = start, start + 4 * n_blocks * HOUR
+    ev = _events(con, stays.loc[ids], lo, hi, SOFA_FEATURES, gcs_intubated=gcs_intubated)
     ev = ev.assign(blk=((ev["time"].to_numpy() - start.reindex(ev["icustay_id"]).to_numpy())
                         // (4 * HOUR)).astype("int64"))
+    ev = ev[(ev["blk"] >= 0) & (ev["blk"] < n_blocks)]
     b = ev.pivot_table(index=["icustay_id", "blk"], columns="feature", values="value",
                        aggfunc="mean")
-    idx = pd.MultiIndex.from_product([ids, range(18)], names=["icustay_id", "blk"])
+    idx = pd.MultiIndex.from_product([ids, range(n_blocks)], names=["icustay_id", "blk"])
     b = b.reindex(idx)
-    for c in feats:
+    for c in SOFA_FEATURES:
         if c not in b:
             b[c] = np.nan
+    if carry:
+        b = b.groupby(level=0).ffill()
     b["pf"] = b["paO2"] / (b["sofa_fio2"] / 100)
-    # vasopressor: max NE-equivalent rate running in each 4 h block
     _, _, mv_v, cv_v = _inputs(con, ids, lo, hi)
-    vaso = doses.hourly_vasopressor(lo, mv_v, cv_v, 17, width=4 * HOUR)
+    vaso = doses.hourly_vasopressor(lo, mv_v, cv_v, n_blocks - 1, width=4 * HOUR)
     vaso.index.names = idx.names
     b["vaso"] = vaso.reindex(idx).to_numpy()
-    return sofa_score(b).groupby(level=0).max().rename("max_sofa")
+    out = sofa_components(b)
+    out["sofa"] = out[list(SOFA_ORGANS)].sum(axis=1)
+    out["vaso"] = b["vaso"].to_numpy()
+    return out
 
 
-def withdrawn(stays: pd.DataFrame, mv_v: pd.DataFrame, cv_v: pd.DataFrame) -> pd.Index:
-    """Stays flagged as treatment withdrawal (AI-Clinician's 'early deaths from possible
-    withdrawals', adapted to whole ICU stays): died within 90 days of ICU admission,
-    ICU stay < 80 h (AI-Clinician: < 20 blocks of 4 h), maximum NE-equivalent vasopressor
-    rate during the stay > 0.3 ug/kg/min, and no vasopressor in the last 4 h of the stay.
-    (AI-Clinician also requires the last SOFA >= half the maximum SOFA; not used here.)
+def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
+             gcs_intubated: str = "not_assessable") -> pd.DataFrame:
+    """Max over the eighteen 4 h blocks of [onset - 48 h, onset + 24 h) of the block SOFA
+    (``block_sofa``, no carrying). Returns, per stay, ``max_sofa`` and ``sofa_organs``: the
+    organs scoring >= 1 point in the first block reaching the maximum (';'-joined)."""
+    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, gcs_intubated=gcs_intubated)
+    first = blocks["sofa"].groupby(level=0).idxmax()  # first block with the maximum
+    best = blocks.loc[first.to_numpy()]
+    organs = best[list(SOFA_ORGANS)].apply(
+        lambda r: ";".join(f"{o}={int(r[o])}" for o in SOFA_ORGANS if r[o] > 0), axis=1)
+    return pd.DataFrame({"max_sofa": best["sofa"].to_numpy(),
+                         "sofa_organs": organs.to_numpy()},
+                        index=pd.Index(best.index.get_level_values(0), name="icustay_id"))
+
+
+WITHDRAWAL_MAX_BLOCKS = 20  # AI-Clinician: a record of < 20 blocks of 4 h (< 80 h)
+
+
+def withdrawn(con, stays: pd.DataFrame, gcs_intubated: str = "not_assessable") -> pd.Index:
+    """Stays flagged as treatment withdrawal, AI-Clinician's 'exclude early deaths from
+    possible withdrawals' (AIClinician_mimic3_dataset_160219.m, section EXCLUSION OF SOME
+    PATIENTS) on 4 h blocks of the whole ICU stay from INTIME: all of
+
+    - died within 90 days of ICU admission (mortality_90d);
+    - the stay has fewer than 20 blocks of 4 h (OUTTIME - INTIME < 80 h);
+    - the maximum block vasopressor (max NE-equivalent rate, ug/kg/min) > 0.3;
+    - no vasopressor in the last block (max_dose_vaso == 0);
+    - SOFA of the last block >= half the maximum block SOFA over the stay.
+
+    AI-Clinician's record is [onset - 24 h, onset + 48 h] in 4 h blocks of sample-and-held,
+    imputed values; here it is the ICU stay, and SOFA components are carried forward over
+    blocks (``block_sofa(carry=True)``), the nearest equivalent without imputation.
     """
     s = stays
     died90 = s["dod"].notna() & ((s["dod"] - s["intime"]) <= pd.Timedelta(days=90))
-    short = (s["outtime"] - s["intime"]) < 80 * HOUR
-    ne = []
-    if len(mv_v):
-        ne.append(mv_v.assign(ne=doses.norepinephrine_equivalent(mv_v, "mv"),
-                              last=mv_v["endtime"])[["icustay_id", "ne", "last"]])
-    if len(cv_v):
-        ne.append(cv_v.assign(ne=doses.norepinephrine_equivalent(cv_v, "cv"),
-                              last=cv_v["charttime"])[["icustay_id", "ne", "last"]])
-    if not ne:
+    n_blk = np.ceil((s["outtime"] - s["intime"]) / (4 * HOUR)).clip(lower=1)
+    cand = s.index[(died90 & (n_blk < WITHDRAWAL_MAX_BLOCKS)).to_numpy()]
+    if not len(cand):
         return pd.Index([], dtype="int64")
-    v = pd.concat(ne).dropna(subset=["ne"])
-    mx = v.groupby("icustay_id")["ne"].max()
-    late = v[(v["ne"] > 0)
-             & (v["last"] >= s["outtime"].reindex(v["icustay_id"]).to_numpy() - 4 * HOUR)]
-    on_at_end = pd.Index(late["icustay_id"].unique())
-    cand = s.index[died90 & short]
-    cand = cand[(mx.reindex(cand).fillna(0) > 0.3).to_numpy()]
-    return cand.difference(on_at_end)
+    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], WITHDRAWAL_MAX_BLOCKS - 1,
+                        carry=True, gcs_intubated=gcs_intubated)
+    last = n_blk.loc[cand].astype("int64") - 1
+    keep = blocks.index.get_level_values("blk").to_numpy() <= last.reindex(
+        blocks.index.get_level_values(0)).to_numpy()
+    blocks = blocks[keep]
+    mx = blocks.groupby(level=0)[["sofa", "vaso"]].max()
+    lastrow = blocks.groupby(level=0).tail(1).droplevel(1)
+    flag = ((mx["vaso"] > 0.3) & (lastrow["vaso"].reindex(mx.index) == 0)
+            & (lastrow["sofa"].reindex(mx.index) >= mx["sofa"] / 2))
+    return pd.Index(mx.index[flag.to_numpy()], dtype="int64")
 
 
 ANCHORS = ("intime", "first_vitals")
+WEIGHT_MISSING = ("impute", "exclude")
 ANCHOR_WINDOW_H = 6  # first_vitals: the complete vital set must start within the first 6 ICU h
 
 
@@ -337,7 +459,8 @@ def realign(frame: pd.DataFrame, offset_h: pd.Series, t_max: int) -> pd.DataFram
 
 
 def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
-                   anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H
+                   anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H,
+                   gcs_intubated: str = "not_assessable", weight_missing: str = "impute"
                    ) -> Mimic3Cohort:
     """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
 
@@ -356,6 +479,12 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
         raise ContractError(f"mimic3 source: anchor must be one of {ANCHORS}, got {anchor!r}")
     if int(anchor_window_h) < 1:
         raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
+    if weight_missing not in WEIGHT_MISSING:
+        raise ContractError(f"mimic3 source: weight_missing must be one of {WEIGHT_MISSING}, "
+                            f"got {weight_missing!r}")
+    if gcs_intubated not in GCS_INTUBATED:
+        raise ContractError(f"mimic3 source: gcs_intubated must be one of {GCS_INTUBATED}, "
+                            f"got {gcs_intubated!r}")
     folder = Path(folder)
     con = connect(folder, threads=threads)
     c = _Consort()
@@ -363,14 +492,16 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     c.add("all_icu_stays", "ICU stays in ICUSTAYS", stays.index)
     stays = stays[stays["age"] >= 18]
     c.add("adult", "age >= 18 at ICU admission", stays.index)
-    onset = suspected_infection(con, stays)
-    stays = stays.loc[stays.index.intersection(onset.index)]
-    onset = onset.reindex(stays.index)
+    inf = suspected_infection(con, stays)
+    stays = stays.loc[stays.index.intersection(inf.index)]
+    onset = inf["onset"].reindex(stays.index)
     c.add("suspected_infection", "antibiotic + culture (culture <= 24 h after antibiotic, "
-          "or antibiotic <= 72 h after culture)", stays.index)
+          "or antibiotic <= 72 h after culture), onset in [INTIME - 48 h, OUTTIME + 48 h]",
+          stays.index)
+    sofa = pd.DataFrame(columns=["max_sofa", "sofa_organs"])
     if len(stays):
-        sofa = max_sofa(con, stays, onset)
-        stays = stays.loc[sofa.index[sofa >= 2]]
+        sofa = max_sofa(con, stays, onset, gcs_intubated=gcs_intubated)
+        stays = stays.loc[sofa.index[sofa["max_sofa"] >= 2]]
     c.add("sofa_ge_2", "max SOFA >= 2 in [onset - 48 h, onset + 24 h]", stays.index)
     stays = stays[stays["hospital_expire_flag"].isin([0, 1])]
     c.add("mortality_documented", "hospital mortality documented", stays.index)
@@ -384,10 +515,9 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     stays = stays[stays.index.isin(documented)]
     c.add("intake_documented", "IV fluid / vasopressor charting present (INPUTEVENTS_MV/CV)",
           stays.index)
-    _, _, mv_all, cv_all = _inputs(con, stays.index, stays["intime"], stays["outtime"])
-    stays = stays.drop(index=withdrawn(stays, mv_all, cv_all))
-    c.add("not_withdrawn", "treatment withdrawal excluded (AI-Clinician rule, adapted)",
-          stays.index)
+    stays = stays.drop(index=withdrawn(con, stays, gcs_intubated=gcs_intubated))
+    c.add("not_withdrawn", "treatment withdrawal excluded (AI-Clinician's rule in full, on "
+          "4 h blocks of the ICU stay)", stays.index)
 
     # hourly blocks k = 0..n_blk - 1 from INTIME: enough to find the anchor and hold t_max
     # hours after it (intime: the anchor is block 0)
@@ -418,18 +548,23 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     raw = realign(raw, offset, t_max)
     held = realign(held, offset, t_max)
 
-    # weight: if no weight within 72 h before an hour, the first weight charted in the stay
-    if len(stays):
-        wstay = _events(con, stays, stays["intime"], stays["outtime"], ("weight",))
-        # the first charting instant's weights, averaged (kg and lb are often charted together)
-        first_t = wstay.groupby("icustay_id")["time"].transform("min")
-        first_w = wstay[wstay["time"] == first_t].groupby("icustay_id")["value"].mean()
-        keys = held.index.get_level_values("icustay_id")
-        held["weight"] = held["weight"].fillna(pd.Series(first_w.reindex(keys).to_numpy(),
-                                                         index=held.index))
-    has_w = held["weight"].notna().groupby(level=0).all()
-    stays = stays.loc[has_w.index[has_w]]
-    c.add("weight_documented", "weight documented for the stay", stays.index)
+    # weight: charted in hour t or held (72 h) from before it, never from a later charting.
+    # Hours still without one are imputed from other stays (weight_missing="impute") or the
+    # stay is excluded ("exclude"); either way the stay must have a weight charted in
+    # [INTIME - 72 h, OUTTIME] (documented, a selection criterion, never a value).
+    if weight_missing == "exclude":
+        has_w = held["weight"].notna().groupby(level=0).all()
+        stays = stays.loc[has_w.index[has_w]]
+        c.add("weight_documented", "weight charted at or before the end of every hour "
+              f"t = 0..{t_max} (held 72 h)", stays.index)
+    else:
+        wdoc = (_events(con, stays, stays["intime"] - 72 * HOUR, stays["outtime"], ("weight",))
+                if len(stays) else pd.DataFrame(columns=["icustay_id"]))
+        stays = stays[stays.index.isin(wdoc["icustay_id"].unique())]
+        n_imp = int((~held["weight"].notna().groupby(level=0).all()).reindex(stays.index).sum())
+        c.add("weight_documented", "a weight charted in [INTIME - 72 h, OUTTIME]; hours "
+              "without one charted at or before their end are imputed from other stays "
+              f"({n_imp} stays at this step)", stays.index)
     vit_ok = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
     stays = stays.loc[vit_ok.index[vit_ok].intersection(stays.index)]
     c.add("vitals_complete", f"every vital present in each hour t = 0..{t_max} "
@@ -439,12 +574,19 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     held = held.loc[ids]
     raw = raw.loc[ids]
     t0 = t0.loc[ids]
-    after_hold_missing = held[list(hourly.LABS)].isna()
+    after_hold_missing = held[["weight", *hourly.LABS]].isna()
     if len(ids):
-        # labs still missing after sample-and-hold: 1-NN over all non-demographic features
+        # labs still missing after sample-and-hold: 1-NN over all non-demographic features,
+        # donors from other stays only (a same-stay donor would be the stay's own future)
         x = held[list(schema.FEATURES[2:])].to_numpy(float)
-        imp = hourly.knn_impute(x)
+        imp = hourly.knn_impute(x, groups=held.index.get_level_values("icustay_id").to_numpy())
         held[list(schema.FEATURES[2:])] = imp
+    done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
+    ids = ids[done.reindex(ids).to_numpy(bool)]
+    c.add("imputable", "every lab of every hour observed, held or imputed from another stay",
+          ids)
+    stays, held, raw, t0 = stays.loc[ids], held.loc[ids], raw.loc[ids], t0.loc[ids]
+    after_hold_missing = after_hold_missing.loc[ids]
     # missingness report (before sample-and-hold), on the final cohort
     miss_rows = []
     n = len(ids)

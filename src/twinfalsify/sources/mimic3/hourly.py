@@ -146,40 +146,50 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     return out
 
 
-def knn_impute(x: np.ndarray, chunk: int = 10_000, batch: int = 512) -> np.ndarray:
+def knn_impute(x: np.ndarray, groups: np.ndarray | None = None, chunk: int = 10_000,
+               batch: int = 512) -> np.ndarray:
     """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
-    on chunks of 10,000 records).
+    on chunks of 10,000 records), with donors from *other* stays only.
 
-    For a row with missing column j, the donor is the row, among rows with column j observed,
-    minimising the mean over commonly observed columns of ((x_i - x_k) / sd)^2 (standardised
-    Euclidean distance, sd = column standard deviation over all rows; averaging over the
-    shared columns keeps rows with different missingness comparable); ties go to the first
-    row. Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
-    Columns with no observed value in a chunk stay NaN.
+    For a row i of stay g = groups[i] with missing column j, the donor is the row k, among
+    rows of other stays (groups[k] != g) with column j observed, minimising the mean over
+    commonly observed columns of ((x_i - x_k) / sd_g)^2 (standardised Euclidean distance;
+    averaging over the shared columns keeps rows with different missingness comparable);
+    ties go to the first row. sd_g is the column standard deviation over the rows of all
+    stays but g. Why other stays only: a donor from the same stay is usually a later hour
+    of that stay, so the imputed value of hour t would come from the stay's own future
+    (AI-Clinician imputes over all records); with sd_g the stay's own rows do not even
+    enter the distance scale, so row i's imputed values depend on row i and on other stays
+    only. ``groups=None``: every row is its own group (plain 1-NN, tests).
+    Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
+    Cells without any eligible donor stay NaN.
 
     Cost: linear in the number of rows (chunk-bounded). Within a chunk, distances of a batch
-    of rows to all rows come from matrix products, with z = x / sd zero-filled and O the
-    observed mask: sum_shared (z_i - z_k)^2 = (z_i^2) . O_k + O_i . (z_k^2) - 2 z_i . z_k,
-    n_shared = O_i . O_k. The donor is then confirmed by the direct formula on every row
-    within 1e-6 (1 + d_min) of the approximate minimum (the expansion's rounding error is
-    ~1e-13 of the squares), so the result equals the direct definition, ties included
-    (``_knn_impute_direct`` is that definition, kept for tests and benchmarks).
+    of rows to all rows come from matrix products, with x zero-filled, O the observed mask
+    and w_i = 1 / sd_{g(i)}^2: sum_shared w (x_i - x_k)^2 = (w O_i x_i^2) . O_k
+    - 2 (w O_i x_i) . x_k + (w O_i) . (O_k x_k^2), n_shared = O_i . O_k. The donor is then
+    confirmed by the direct formula on every row within 1e-6 (1 + d_min) of the
+    approximate minimum (the expansion's rounding error is ~1e-13 of the squares), so the
+    result equals the direct definition, ties included (``_knn_impute_direct``).
     """
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    sd = _knn_scale(x)
+    g = np.arange(len(x)) if groups is None else np.asarray(groups)
+    inv_var = 1.0 / _knn_scale_by_group(x, g) ** 2  # per row: 1 / sd_{g(i)}^2
     for c0 in range(0, len(x), chunk):
-        xc = x[c0:c0 + chunk] / sd
+        xc = x[c0:c0 + chunk]
+        gc = g[c0:c0 + chunk]
         obs = np.isfinite(xc)
         z = np.where(obs, xc, 0.0)
         z2, of = z * z, obs.astype(float)
         rows = np.flatnonzero(~obs.all(axis=1))
         for b0 in range(0, len(rows), batch):
             r = rows[b0:b0 + batch]
-            num = z2[r] @ of.T + of[r] @ z2.T - 2.0 * (z[r] @ z.T)
+            w = inv_var[c0 + r] * of[r]
+            num = (w * z2[r]) @ of.T - 2.0 * ((w * z[r]) @ z.T) + w @ z2.T
             n = of[r] @ of.T
             approx = np.where(n > 0, num / np.maximum(n, 1.0), np.inf)
-            approx[np.arange(len(r)), r] = np.inf  # never its own donor
+            approx[gc[r][:, None] == gc[None, :]] = np.inf  # never a donor of its own stay
             for j in np.flatnonzero(~obs[r].all(axis=0)):
                 need = np.flatnonzero(~obs[r, j])
                 cand = np.where(obs[:, j], approx[need], np.inf)
@@ -188,38 +198,68 @@ def knn_impute(x: np.ndarray, chunk: int = 10_000, batch: int = 512) -> np.ndarr
                 k = np.argmin(cand, axis=1)
                 for p in np.flatnonzero(np.isfinite(dmin) & (near.sum(axis=1) > 1)):
                     c = np.flatnonzero(near[p])  # near-ties: decide by the direct formula
-                    k[p] = c[int(np.argmin(_direct_dist(xc, obs, r[need[p]], c)))]
+                    i = r[need[p]]
+                    k[p] = c[int(np.argmin(_direct_dist(xc, obs, i, c, inv_var[c0 + i])))]
                 ok = np.isfinite(dmin)
                 out[c0 + r[need[ok]], j] = x[c0 + k[ok], j]
     return out
 
 
-def _knn_scale(x: np.ndarray) -> np.ndarray:
-    sd = np.nanstd(x, axis=0)
-    sd[~np.isfinite(sd) | (sd == 0)] = 1.0
-    return sd
+def _knn_scale_by_group(x: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Per row i, the column standard deviations (ddof 0, observed values) over the rows
+    of every group but groups[i]; 1 where undefined or 0.
+
+    The sums over the other groups are prefix sums over the groups before g plus suffix
+    sums over the groups after g, so not one rounding depends on group g's own values."""
+    uniq, inv = np.unique(groups, return_inverse=True)
+    obs = np.isfinite(x)
+    z = np.where(obs, x, 0.0)
+    m = len(uniq)
+    s0 = np.zeros((m, x.shape[1]))
+    s1 = np.zeros_like(s0)
+    s2 = np.zeros_like(s0)
+    np.add.at(s0, inv, obs.astype(float))
+    np.add.at(s1, inv, z)
+    np.add.at(s2, inv, z * z)
+
+    def others(s: np.ndarray) -> np.ndarray:
+        pre = np.vstack([np.zeros((1, s.shape[1])), np.cumsum(s, axis=0)[:-1]])
+        suf = np.vstack([np.cumsum(s[::-1], axis=0)[::-1][1:], np.zeros((1, s.shape[1]))])
+        return pre + suf
+
+    n, t1, t2 = others(s0), others(s1), others(s2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = t1 / n
+        var = np.maximum(t2 / n - mean * mean, 0.0)
+    sd = np.sqrt(var)
+    sd[~np.isfinite(sd) | (sd <= 1e-12 * (1.0 + np.abs(np.nan_to_num(mean))))] = 1.0
+    return sd[inv]
 
 
-def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray) -> np.ndarray:
-    """Mean squared standardised difference of row i to ``rows`` over shared columns."""
+def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray,
+                 inv_var: np.ndarray) -> np.ndarray:
+    """Mean of inv_var * (x_i - x_k)^2 of row i to ``rows`` over shared columns."""
     shared = obs[rows] & obs[i]
     diff = np.where(shared, xc[rows] - np.where(obs[i], xc[i], 0.0), 0.0)
     n = shared.sum(axis=1)
-    return np.where(n > 0, (diff ** 2).sum(axis=1) / np.maximum(n, 1), np.inf)
+    return np.where(n > 0, (diff ** 2 * inv_var).sum(axis=1) / np.maximum(n, 1), np.inf)
 
 
-def _knn_impute_direct(x: np.ndarray, chunk: int = 10_000) -> np.ndarray:
+def _knn_impute_direct(x: np.ndarray, groups: np.ndarray | None = None,
+                       chunk: int = 10_000) -> np.ndarray:
     """``knn_impute`` by the definition, one row at a time (O(chunk) numpy work per row)."""
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    sd = _knn_scale(x)
+    g = np.arange(len(x)) if groups is None else np.asarray(groups)
+    inv_var = 1.0 / _knn_scale_by_group(x, g) ** 2
     for c0 in range(0, len(x), chunk):
-        xc = x[c0:c0 + chunk] / sd
+        xc = x[c0:c0 + chunk]
+        gc = g[c0:c0 + chunk]
         obs = np.isfinite(xc)
         every = np.arange(len(xc))
         for i in np.flatnonzero(~obs.all(axis=1)):
-            dist = _direct_dist(xc, obs, i, every)
-            dist[i] = np.inf
+            dist = _direct_dist(xc, obs, i, every, inv_var[c0 + i])
+            dist[gc == gc[i]] = np.inf
             for j in np.flatnonzero(~obs[i]):
                 cand = np.where(obs[:, j], dist, np.inf)
                 k = int(np.argmin(cand))
