@@ -49,6 +49,7 @@ class Mimic3Cohort:
     consort: pd.DataFrame  # step, description, n_stays, n_excluded
     missingness: pd.DataFrame  # feature, t, n_missing_raw, share_missing_raw, n_imputed
     anchors: pd.DataFrame  # stay_id, intime, t0 (time of t = 0), anchor_h (t0 - INTIME, h)
+    imputed: pd.DataFrame | None = None  # stay_id, t, weight + labs: True = imputed cell
 
 
 class _Consort:
@@ -96,14 +97,20 @@ ONSET_WINDOW = pd.Timedelta(hours=48)  # AI-Clinician: events and onset in [in -
 LAB_WINDOW = pd.Timedelta(days=1)  # AI-Clinician: labs kept in [INTIME - 1 d, OUTTIME + 1 d]
 
 
-def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
+EVENT_STAY = ("nearest", "last")
+
+
+def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame, rule: str = "nearest"
+                     ) -> pd.DataFrame:
     """Give each event (hadm_id, icustay_id or NaN, time) one ICU stay, as AI-Clinician
     fills icustay ids of antibiotics and cultures (sepsis-3 onset code):
 
     - an event with an ICUSTAY_ID keeps it (dropped if that stay is not among ``stays``);
-    - otherwise the stay of the same admission with INTIME - 48 h <= time <= OUTTIME + 48 h
-      (the first such stay by INTIME when several qualify), or, when none qualifies, the
-      admission's only stay.
+    - otherwise a stay of the same admission with INTIME - 48 h <= time <= OUTTIME + 48 h;
+      when several qualify, ``rule="nearest"`` takes the one whose [INTIME, OUTTIME] is
+      nearest to the event (0 inside; ties: earlier INTIME), ``"last"`` the last by INTIME
+      (AI-Clinician's loop, where a later match overwrites an earlier one);
+    - when none qualifies, the admission's only stay, if it has one.
 
     Returns icustay_id, time (plus the other columns of ``events``)."""
     s = stays[["icustay_id", "hadm_id", "intime", "outtime"]].reset_index(drop=True)
@@ -116,7 +123,15 @@ def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
     rest = ev[~has].drop(columns="icustay_id")
     m = rest.merge(s, on="hadm_id")
     inwin = (m["time"] >= m["intime"] - ONSET_WINDOW) & (m["time"] <= m["outtime"] + ONSET_WINDOW)
-    win = m[inwin].sort_values(["_row", "intime"], kind="stable").drop_duplicates("_row")
+    win = m[inwin]
+    if rule == "last":
+        win = win.sort_values(["_row", "intime"], kind="stable").drop_duplicates(
+            "_row", keep="last")
+    else:
+        dist = np.maximum(np.maximum((win["intime"] - win["time"]) / HOUR,
+                                     (win["time"] - win["outtime"]) / HOUR), 0.0)
+        win = win.assign(_d=dist).sort_values(["_row", "_d", "intime"], kind="stable")
+        win = win.drop_duplicates("_row", keep="first")
     n_per_adm = s.groupby("hadm_id")["icustay_id"].transform("count")
     only_ids = set(s.loc[n_per_adm == 1, "icustay_id"])
     only = m[~m["_row"].isin(win["_row"]) & m["icustay_id"].isin(only_ids)]
@@ -126,13 +141,15 @@ def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
     return out.astype({"icustay_id": "int64"})
 
 
-def suspected_infection(con, stays: pd.DataFrame) -> pd.DataFrame:
+def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest"
+                        ) -> pd.DataFrame:
     """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
     Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
     PRESCRIPTIONS.ICUSTAY_ID when given. Cultures: MICROBIOLOGYEVENTS rows (time =
     CHARTTIME, else CHARTDATE) and CHARTEVENTS rows of the culture items of cultures.csv
-    (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``.
+    (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``
+    (``event_stay``: the rule when several stays of the admission qualify).
     Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
     decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
     culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def). An onset
@@ -170,8 +187,8 @@ def suspected_infection(con, stays: pd.DataFrame) -> pd.DataFrame:
     cult = pd.concat([micro, chart], ignore_index=True)
     cult = cult[cult["time"].notna() & (cult["hadm_id"].notna() | cult["icustay_id"].notna())]
     abx = abx[abx["time"].notna()]
-    a = _assign_to_stays(abx, stays).drop_duplicates()
-    c = _assign_to_stays(cult, stays).drop_duplicates()
+    a = _assign_to_stays(abx, stays, event_stay).drop_duplicates()
+    c = _assign_to_stays(cult, stays, event_stay).drop_duplicates()
     rows = {}
     cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
     for sid, g in a.groupby("icustay_id"):
@@ -460,8 +477,8 @@ def realign(frame: pd.DataFrame, offset_h: pd.Series, t_max: int) -> pd.DataFram
 
 def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
                    anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H,
-                   gcs_intubated: str = "not_assessable", weight_missing: str = "impute"
-                   ) -> Mimic3Cohort:
+                   gcs_intubated: str = "not_assessable", weight_missing: str = "impute",
+                   event_stay: str = "nearest") -> Mimic3Cohort:
     """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
 
     Trajectory row (stay, t): features over hour [T0 + t h, T0 + (t+1) h) (block means,
@@ -479,6 +496,9 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
         raise ContractError(f"mimic3 source: anchor must be one of {ANCHORS}, got {anchor!r}")
     if int(anchor_window_h) < 1:
         raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
+    if event_stay not in EVENT_STAY:
+        raise ContractError(f"mimic3 source: event_stay must be one of {EVENT_STAY}, "
+                            f"got {event_stay!r}")
     if weight_missing not in WEIGHT_MISSING:
         raise ContractError(f"mimic3 source: weight_missing must be one of {WEIGHT_MISSING}, "
                             f"got {weight_missing!r}")
@@ -492,7 +512,7 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     c.add("all_icu_stays", "ICU stays in ICUSTAYS", stays.index)
     stays = stays[stays["age"] >= 18]
     c.add("adult", "age >= 18 at ICU admission", stays.index)
-    inf = suspected_infection(con, stays)
+    inf = suspected_infection(con, stays, event_stay)
     stays = stays.loc[stays.index.intersection(inf.index)]
     onset = inf["onset"].reindex(stays.index)
     c.add("suspected_infection", "antibiotic + culture (culture <= 24 h after antibiotic, "
@@ -576,14 +596,17 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     t0 = t0.loc[ids]
     after_hold_missing = held[["weight", *hourly.LABS]].isna()
     if len(ids):
-        # labs still missing after sample-and-hold: 1-NN over all non-demographic features,
-        # donors from other stays only (a same-stay donor would be the stay's own future)
+        # weight / labs still missing after sample-and-hold: 1-NN over all non-demographic
+        # features, donors from other stays at the same or an earlier hour only (a donor
+        # from the stay itself would usually be its own future)
         x = held[list(schema.FEATURES[2:])].to_numpy(float)
-        imp = hourly.knn_impute(x, groups=held.index.get_level_values("icustay_id").to_numpy())
+        imp = hourly.knn_impute(x, groups=held.index.get_level_values("icustay_id").to_numpy(),
+                                times=held.index.get_level_values("t").to_numpy())
         held[list(schema.FEATURES[2:])] = imp
     done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
     ids = ids[done.reindex(ids).to_numpy(bool)]
-    c.add("imputable", "every lab of every hour observed, held or imputed from another stay",
+    c.add("imputable", "weight and every lab of every hour observed, held or imputed from "
+          "another stay's same or earlier hour",
           ids)
     stays, held, raw, t0 = stays.loc[ids], held.loc[ids], raw.loc[ids], t0.loc[ids]
     after_hold_missing = after_hold_missing.loc[ids]
@@ -622,8 +645,9 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
                             "anchor_h": offset.reindex(ids).to_numpy("int64")})
     con.close()
+    imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
-                        missingness=missingness, anchors=anchors)
+                        missingness=missingness, anchors=anchors, imputed=imputed)
 
 
 def main(argv: list[str] | None = None) -> None:

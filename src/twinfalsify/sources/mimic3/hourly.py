@@ -146,27 +146,30 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     return out
 
 
-def knn_impute(x: np.ndarray, groups: np.ndarray | None = None, chunk: int = 10_000,
+def knn_impute(x: np.ndarray, groups: np.ndarray | None = None,
+               times: np.ndarray | None = None, chunk: int = 10_000,
                batch: int = 512) -> np.ndarray:
     """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
-    on chunks of 10,000 records), with donors from *other* stays only.
+    on chunks of 10,000 records), causal: donors are rows of *other* stays at the same or
+    an earlier hour.
 
-    For a row i of stay g = groups[i] with missing column j, the donor is the row k, among
-    rows of other stays (groups[k] != g) with column j observed, minimising the mean over
-    commonly observed columns of ((x_i - x_k) / sd_g)^2 (standardised Euclidean distance;
-    averaging over the shared columns keeps rows with different missingness comparable);
-    ties go to the first row. sd_g is the column standard deviation over the rows of all
-    stays but g. Why other stays only: a donor from the same stay is usually a later hour
-    of that stay, so the imputed value of hour t would come from the stay's own future
-    (AI-Clinician imputes over all records); with sd_g the stay's own rows do not even
-    enter the distance scale, so row i's imputed values depend on row i and on other stays
-    only. ``groups=None``: every row is its own group (plain 1-NN, tests).
+    Row i belongs to stay g = groups[i] at hour t = times[i]. Its eligible donors for a
+    missing column j are the rows k with groups[k] != g, times[k] <= t and column j
+    observed; the donor minimises the mean over commonly observed columns of
+    ((x_i - x_k) / sd_{g,t})^2 (standardised Euclidean distance; averaging over the shared
+    columns keeps rows with different missingness comparable); ties go to the first row.
+    sd_{g,t} is the column standard deviation over the eligible rows (other stays, hours
+    <= t). So the imputed values of hour t depend only on row i and on rows of other stays
+    at hours <= t, never on anything charted after the end of hour t, neither in the stay
+    itself (AI-Clinician imputes over all records, so a stay's later hours are its usual
+    donors) nor in the other stays. ``groups=None``: each row its own stay; ``times=None``:
+    all rows at the same hour (plain 1-NN with a leave-one-out scale).
     Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
     Cells without any eligible donor stay NaN.
 
     Cost: linear in the number of rows (chunk-bounded). Within a chunk, distances of a batch
     of rows to all rows come from matrix products, with x zero-filled, O the observed mask
-    and w_i = 1 / sd_{g(i)}^2: sum_shared w (x_i - x_k)^2 = (w O_i x_i^2) . O_k
+    and w_i = 1 / sd_{g(i),t(i)}^2: sum_shared w (x_i - x_k)^2 = (w O_i x_i^2) . O_k
     - 2 (w O_i x_i) . x_k + (w O_i) . (O_k x_k^2), n_shared = O_i . O_k. The donor is then
     confirmed by the direct formula on every row within 1e-6 (1 + d_min) of the
     approximate minimum (the expansion's rounding error is ~1e-13 of the squares), so the
@@ -174,11 +177,11 @@ def knn_impute(x: np.ndarray, groups: np.ndarray | None = None, chunk: int = 10_
     """
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    g = np.arange(len(x)) if groups is None else np.asarray(groups)
-    inv_var = 1.0 / _knn_scale_by_group(x, g) ** 2  # per row: 1 / sd_{g(i)}^2
+    g, tt = _knn_keys(x, groups, times)
+    inv_var = 1.0 / _knn_scale(x, g, tt) ** 2  # per row: 1 / sd_{g(i),t(i)}^2
     for c0 in range(0, len(x), chunk):
         xc = x[c0:c0 + chunk]
-        gc = g[c0:c0 + chunk]
+        gc, tc = g[c0:c0 + chunk], tt[c0:c0 + chunk]
         obs = np.isfinite(xc)
         z = np.where(obs, xc, 0.0)
         z2, of = z * z, obs.astype(float)
@@ -189,7 +192,8 @@ def knn_impute(x: np.ndarray, groups: np.ndarray | None = None, chunk: int = 10_
             num = (w * z2[r]) @ of.T - 2.0 * ((w * z[r]) @ z.T) + w @ z2.T
             n = of[r] @ of.T
             approx = np.where(n > 0, num / np.maximum(n, 1.0), np.inf)
-            approx[gc[r][:, None] == gc[None, :]] = np.inf  # never a donor of its own stay
+            # never a donor from its own stay or from a later hour
+            approx[(gc[r][:, None] == gc[None, :]) | (tc[None, :] > tc[r][:, None])] = np.inf
             for j in np.flatnonzero(~obs[r].all(axis=0)):
                 need = np.flatnonzero(~obs[r, j])
                 cand = np.where(obs[:, j], approx[need], np.inf)
@@ -205,35 +209,44 @@ def knn_impute(x: np.ndarray, groups: np.ndarray | None = None, chunk: int = 10_
     return out
 
 
-def _knn_scale_by_group(x: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """Per row i, the column standard deviations (ddof 0, observed values) over the rows
-    of every group but groups[i]; 1 where undefined or 0.
+def _knn_keys(x: np.ndarray, groups, times) -> tuple[np.ndarray, np.ndarray]:
+    g = np.arange(len(x)) if groups is None else np.asarray(groups)
+    t = np.zeros(len(x), dtype="int64") if times is None else np.asarray(times)
+    if len(g) != len(x) or len(t) != len(x):
+        raise ValueError("knn_impute: groups and times need one entry per row")
+    return g, t
 
-    The sums over the other groups are prefix sums over the groups before g plus suffix
-    sums over the groups after g, so not one rounding depends on group g's own values."""
-    uniq, inv = np.unique(groups, return_inverse=True)
+
+def _knn_scale(x: np.ndarray, groups: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Per row i, the column standard deviations (ddof 0, observed values) over the rows
+    of every group but groups[i] with times <= times[i]; 1 where undefined or 0.
+
+    Sums per (group, hour) are accumulated over hours <= t, then summed over the other
+    groups as a prefix sum over the groups before g plus a suffix sum over those after g,
+    so not one rounding depends on group g's values or on any row of a later hour."""
+    gu, gi = np.unique(groups, return_inverse=True)
+    tu, ti = np.unique(times, return_inverse=True)
     obs = np.isfinite(x)
     z = np.where(obs, x, 0.0)
-    m = len(uniq)
-    s0 = np.zeros((m, x.shape[1]))
-    s1 = np.zeros_like(s0)
-    s2 = np.zeros_like(s0)
-    np.add.at(s0, inv, obs.astype(float))
-    np.add.at(s1, inv, z)
-    np.add.at(s2, inv, z * z)
+    shape = (len(gu), len(tu), x.shape[1])
+    s = [np.zeros(shape) for _ in range(3)]
+    for acc, v in zip(s, (obs.astype(float), z, z * z), strict=True):
+        np.add.at(acc, (gi, ti), v)
 
-    def others(s: np.ndarray) -> np.ndarray:
-        pre = np.vstack([np.zeros((1, s.shape[1])), np.cumsum(s, axis=0)[:-1]])
-        suf = np.vstack([np.cumsum(s[::-1], axis=0)[::-1][1:], np.zeros((1, s.shape[1]))])
+    def others(a: np.ndarray) -> np.ndarray:
+        a = np.cumsum(a, axis=1)  # hours <= t
+        zero = np.zeros_like(a[:1])
+        pre = np.concatenate([zero, np.cumsum(a, axis=0)[:-1]])
+        suf = np.concatenate([np.cumsum(a[::-1], axis=0)[::-1][1:], zero])
         return pre + suf
 
-    n, t1, t2 = others(s0), others(s1), others(s2)
+    n, t1, t2 = (others(a) for a in s)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = t1 / n
         var = np.maximum(t2 / n - mean * mean, 0.0)
     sd = np.sqrt(var)
     sd[~np.isfinite(sd) | (sd <= 1e-12 * (1.0 + np.abs(np.nan_to_num(mean))))] = 1.0
-    return sd[inv]
+    return sd[gi, ti]
 
 
 def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray,
@@ -246,20 +259,20 @@ def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray,
 
 
 def _knn_impute_direct(x: np.ndarray, groups: np.ndarray | None = None,
-                       chunk: int = 10_000) -> np.ndarray:
+                       times: np.ndarray | None = None, chunk: int = 10_000) -> np.ndarray:
     """``knn_impute`` by the definition, one row at a time (O(chunk) numpy work per row)."""
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    g = np.arange(len(x)) if groups is None else np.asarray(groups)
-    inv_var = 1.0 / _knn_scale_by_group(x, g) ** 2
+    g, tt = _knn_keys(x, groups, times)
+    inv_var = 1.0 / _knn_scale(x, g, tt) ** 2
     for c0 in range(0, len(x), chunk):
         xc = x[c0:c0 + chunk]
-        gc = g[c0:c0 + chunk]
+        gc, tc = g[c0:c0 + chunk], tt[c0:c0 + chunk]
         obs = np.isfinite(xc)
         every = np.arange(len(xc))
         for i in np.flatnonzero(~obs.all(axis=1)):
             dist = _direct_dist(xc, obs, i, every, inv_var[c0 + i])
-            dist[gc == gc[i]] = np.inf
+            dist[(gc == gc[i]) | (tc > tc[i])] = np.inf
             for j in np.flatnonzero(~obs[i]):
                 cand = np.where(obs[:, j], dist, np.inf)
                 k = int(np.argmin(cand))
