@@ -94,28 +94,54 @@ def block_means(ev: pd.DataFrame, intime: pd.Series, features: tuple[str, ...], 
     return wide.reindex(index=idx, columns=list(features))
 
 
+def _within_limits(feature: str, v: pd.Series) -> pd.Series:
+    """True where ``v`` passes every outlier_limits.csv row of ``feature``."""
+    lim = data_table("outlier_limits.csv")
+    ok = pd.Series(True, index=v.index)
+    for _, r in lim[lim["feature"] == feature].iterrows():
+        if pd.notna(r["lo"]):
+            ok &= ~(v < float(r["lo"]))
+        if pd.notna(r["hi"]):
+            ok &= ~(v > float(r["hi"]))
+    return ok
+
+
 def complete_bp(b: pd.DataFrame) -> pd.DataFrame:
     """Fill one missing BP of (SysBP, MeanBP, DiaBP) from the other two (AI-Clinician):
     MAP = (Sys + 2 Dia) / 3, Dia = (3 MAP - Sys) / 2, Sys = 3 MAP - 2 Dia.
-    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.)"""
+    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.) A completed
+    value outside the feature's outlier limits (e.g. a negative diastolic from an
+    inconsistent pair) is left missing, as a charted one would be deleted."""
     b = b.copy()
-    s, m, d = b["SysBP"], b["MeanBP"], b["DiaBP"]
-    b.loc[m.isna() & s.notna() & d.notna(), "MeanBP"] = (s + 2 * d) / 3
-    m = b["MeanBP"]
-    b.loc[d.isna() & s.notna() & m.notna(), "DiaBP"] = (3 * m - s) / 2
-    d = b["DiaBP"]
-    b.loc[s.isna() & m.notna() & d.notna(), "SysBP"] = 3 * m - 2 * d
+
+    def fill(feat: str, need: pd.Series, v: pd.Series) -> None:
+        b.loc[need & _within_limits(feat, v), feat] = v
+
+    s = b["SysBP"]
+    fill("MeanBP", b["MeanBP"].isna() & s.notna() & b["DiaBP"].notna(), (s + 2 * b["DiaBP"]) / 3)
+    fill("DiaBP", b["DiaBP"].isna() & s.notna() & b["MeanBP"].notna(), (3 * b["MeanBP"] - s) / 2)
+    fill("SysBP", s.isna() & b["MeanBP"].notna() & b["DiaBP"].notna(),
+         3 * b["MeanBP"] - 2 * b["DiaBP"])
     return b
 
 
-def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -> pd.DataFrame:
-    """Fill a missing block value with the last measurement before the block start
-    (INTIME + t h) if it is at most hold_hours old (sample_and_hold.csv). Measurements
-    before ICU admission count (labs are drawn on the ward / in the ED).
+HOLDS = ("last_value", "last_hour_mean")
 
-    Rule (AI-Clinician SAH.m): a value is carried forward for hold_hours after it was taken.
-    Several values taken at the same last instant are averaged.
+
+def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series,
+                    how: str = "last_value") -> pd.DataFrame:
+    """Fill a missing block value from measurements taken before the block start
+    (INTIME + t h) if the last one is at most hold_hours old (sample_and_hold.csv).
+    Measurements before ICU admission count (labs are drawn on the ward / in the ED).
+
+    ``how="last_value"`` (AI-Clinician SAH.m: a value is carried forward for hold_hours
+    after it was taken): the last value; several values taken at that same instant are
+    averaged. ``how="last_hour_mean"``: the mean of the values of the last whole hour
+    [INTIME + k h, INTIME + (k + 1) h) before the block that has any, held for hold_hours
+    after the last of them. Either way only values charted before the block start are used.
     """
+    if how not in HOLDS:
+        raise ContractError(f"sample_and_hold: how must be one of {HOLDS}, got {how!r}")
     hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
     out = blocks.copy()
     keys = out.index.to_frame(index=False)
@@ -126,12 +152,21 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
         miss = out[feat].isna().to_numpy()
         if not miss.any():
             continue
-        # values charted at the same instant (e.g. a weight in kg and in lb) are averaged,
-        # as within a block; otherwise the held value would depend on row order
-        e = (ev[ev["feature"] == feat].groupby(["icustay_id", "time"], as_index=False)["value"]
-             .mean().sort_values("time", kind="stable"))
+        e = ev[ev["feature"] == feat]
         if e.empty:
             continue
+        if how == "last_hour_mean":
+            # hour buckets on INTIME's grid (negative before admission); a bucket ending
+            # after a block start never precedes it, since blocks share the grid
+            k = np.floor((e["time"].to_numpy() - intime.reindex(e["icustay_id"]).to_numpy())
+                         / HOUR).astype("int64")
+            e = (e.assign(k=k).groupby(["icustay_id", "k"], as_index=False)
+                 .agg(time=("time", "max"), value=("value", "mean")))
+        else:
+            # values charted at the same instant (e.g. a weight in kg and in lb) are
+            # averaged, as within a block; otherwise the result would depend on row order
+            e = e.groupby(["icustay_id", "time"], as_index=False)["value"].mean()
+        e = e.sort_values("time", kind="stable")
         q = pd.DataFrame({"icustay_id": keys["icustay_id"].to_numpy()[miss],
                           "start": start[miss], "row": np.flatnonzero(miss)})
         q = q.sort_values("start")

@@ -38,6 +38,10 @@ REQUIRED_COLUMNS: dict[str, tuple[str, ...]] = {
                        "RATEUOM", "STATUSDESCRIPTION"),
     "INPUTEVENTS_CV": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "AMOUNT", "RATE", "RATEUOM"),
 }
+# Tables read only by some options (sofa = ai_clinician: urine output).
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {
+    "OUTPUTEVENTS": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "VALUE"),
+}
 
 
 def resolve_mimic3_dir(configured: str | os.PathLike[str] | None) -> Path:
@@ -88,17 +92,19 @@ def _reader(path: Path) -> str:
     return f"read_csv({lit}, header = true, all_varchar = true, quote = '\"', escape = '\"')"
 
 
-def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1
-            ) -> duckdb.DuckDBPyConnection:
-    """DuckDB connection with one view per MIMIC table (upper-case view names)."""
+def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1,
+            optional: tuple[str, ...] = ()) -> duckdb.DuckDBPyConnection:
+    """DuckDB connection with one view per MIMIC table (upper-case view names): ``tables``
+    (default: every table of REQUIRED_COLUMNS) plus ``optional`` ones (OPTIONAL_COLUMNS)."""
     con = duckdb.connect(database=":memory:")
     con.execute(f"SET threads = {int(threads)}")
     con.execute("SET enable_progress_bar = false")  # it would write to the rule's stderr
-    for table in tables or tuple(REQUIRED_COLUMNS):
+    needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}
+    for table in (*(tables or tuple(REQUIRED_COLUMNS)), *optional):
         path = find_table(folder, table)
         con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')
         cols = {c.upper() for c in con.execute(f'SELECT * FROM "{table}" LIMIT 0').df().columns}
-        missing = [c for c in REQUIRED_COLUMNS.get(table, ()) if c not in cols]
+        missing = [c for c in needed.get(table, ()) if c not in cols]
         if missing:
             raise ContractError(
                 f"{path}: missing MIMIC-III v1.4 column(s) {', '.join(missing)} "
