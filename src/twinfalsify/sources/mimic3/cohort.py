@@ -30,6 +30,7 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
+import duckdb
 import numpy as np
 import pandas as pd
 
@@ -38,7 +39,7 @@ from twinfalsify.schema import ContractError
 
 from . import doses, hourly
 from .options import Mimic3Options
-from .tables import connect, data_table
+from .tables import REQUIRED_COLUMNS, connect, data_table, diagnose
 
 HOUR = pd.Timedelta(hours=1)
 AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
@@ -565,10 +566,12 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     if int(anchor_window_h) < 1:
         raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
     folder = Path(folder)
-    con = connect(folder, threads=threads,
-                  optional=("OUTPUTEVENTS",) if opts.sofa == "ai_clinician" else ())
+    optional = ("OUTPUTEVENTS",) if opts.sofa == "ai_clinician" else ()
+    con = connect(folder, threads=threads, optional=optional)
     try:
         return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+    except duckdb.Error as exc:  # damage deep in a file: name it, no traceback
+        raise diagnose(folder, (*REQUIRED_COLUMNS, *optional), exc) from None
     finally:
         con.close()
 
