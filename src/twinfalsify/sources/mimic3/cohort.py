@@ -759,7 +759,7 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
 
 
 def main(argv: list[str] | None = None) -> None:
-    """CLI: python -m twinfalsify.sources.mimic3.cohort FOLDER OUTDIR [options]."""
+    """CLI: python -m twinfalsify.sources.mimic3 FOLDER OUTDIR [options]."""
     from .options import CHOICES, PRESETS, options_from_config
     from .tables import resolve_mimic3_dir
 
@@ -775,9 +775,12 @@ def main(argv: list[str] | None = None) -> None:
         p.add_argument(f"--{k.replace('_', '-')}", choices=v, default=None)
     a = p.parse_args(argv)
     cfg = {"cohort_variant": a.cohort_variant, **{k: getattr(a, k) for k in CHOICES}}
-    res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
-                         anchor=a.anchor, anchor_window_h=a.anchor_window_h,
-                         options=options_from_config(cfg))
+    try:
+        res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
+                             anchor=a.anchor, anchor_window_h=a.anchor_window_h,
+                             options=options_from_config(cfg))
+    except ContractError as exc:  # bad input: one line naming the file, no traceback
+        raise SystemExit(f"ERROR: {exc}") from None
     out = Path(a.outdir)
     out.mkdir(parents=True, exist_ok=True)
     res.trajectories.to_parquet(out / "trajectories.parquet", index=False)
