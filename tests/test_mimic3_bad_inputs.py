@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from twinfalsify.schema import ContractError
-from twinfalsify.sources.mimic3 import extract_mimic3
+from twinfalsify.sources.mimic3 import cohort, extract_mimic3
+from twinfalsify.sources.mimic3.tables import REQUIRED_COLUMNS, diagnose
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +51,7 @@ def _truncated_small(d):
     return _gz(d / "CHARTEVENTS.csv", cut=0.5)
 
 
-def _truncated_deep(d):
+def _truncated_large(d):
     _big(d / "CHARTEVENTS.csv", 400)
     return _gz(d / "CHARTEVENTS.csv", cut=0.97)
 
@@ -72,7 +73,7 @@ def _garbage_after_gzip(d):
     return _gz(d / "PRESCRIPTIONS.csv", extra=b"\x00garbage after the gzip stream\n" * 50)
 
 
-CASES = {"truncated": _truncated_small, "truncated_deep": _truncated_deep,
+CASES = {"truncated": _truncated_small, "truncated_large": _truncated_large,
          "empty_gz": _empty_gz, "header_only": _header_only, "garbage": _garbage_after_gzip}
 
 
@@ -83,6 +84,24 @@ def test_damaged_table_named_in_one_line(tmp_path, case):
         extract_mimic3(tmp_path)
     msg = str(e.value)
     assert str(bad) in msg and "\n" not in msg
+
+
+def test_error_deep_in_a_file_is_traced_to_the_file(tmp_path, monkeypatch):
+    """Damage beyond what the open-time check reads surfaces as a DuckDB error inside a
+    query; the extraction then scans each table and names the damaged one."""
+    import duckdb
+
+    bad = _truncated_small(_copy(tmp_path))
+    msg = str(diagnose(tmp_path, tuple(REQUIRED_COLUMNS), duckdb.IOException("boom")))
+    assert str(bad) in msg and "\n" not in msg
+
+    def fail(*a, **k):
+        raise duckdb.IOException("IO Error: Unexpected end of GZIP stream")
+
+    good = _copy(tmp_path / "good") if (tmp_path / "good").mkdir() is None else None
+    monkeypatch.setattr(cohort, "_extract", fail)
+    with pytest.raises(ContractError, match=r"MIMIC-III tables in .*good: query failed"):
+        extract_mimic3(good)
 
 
 def test_cli_exits_nonzero_with_one_line(tmp_path):
