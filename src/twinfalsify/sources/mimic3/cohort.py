@@ -462,13 +462,10 @@ def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
                         index=pd.Index(best.index.get_level_values(0), name="icustay_id"))
 
 
-WITHDRAWAL_MAX_BLOCKS = 20  # AI-Clinician: a record of < 20 blocks of 4 h (< 80 h)
-
-
 def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd.Index:
     """Stays flagged as treatment withdrawal, AI-Clinician's 'exclude early deaths from
-    possible withdrawals' (AIClinician_mimic3_dataset_160219.m, section EXCLUSION OF SOME
-    PATIENTS) on 4 h blocks of the whole ICU stay from INTIME: all of
+    possible withdrawals' (source and parameters: data/mimic3/withdrawal.csv) on 4 h blocks
+    of the whole ICU stay from INTIME: all of
 
     - died within 90 days of ICU admission (mortality_90d);
     - the stay has fewer than 20 blocks of 4 h (OUTTIME - INTIME < 80 h);
@@ -480,22 +477,26 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd
     imputed values; here it is the ICU stay, and SOFA components are carried forward over
     blocks (``block_sofa(carry=True)``), the nearest equivalent without imputation.
     """
+    par = data_table("withdrawal.csv").set_index("parameter")["value"].astype(float)
+    width = par["block_hours"] * HOUR
+    max_blocks = int(par["max_blocks"])
     s = stays
-    died90 = s["dod"].notna() & ((s["dod"] - s["intime"]) <= pd.Timedelta(days=90))
-    n_blk = np.ceil((s["outtime"] - s["intime"]) / (4 * HOUR)).clip(lower=1)
-    cand = s.index[(died90 & (n_blk < WITHDRAWAL_MAX_BLOCKS)).to_numpy()]
+    died = s["dod"].notna() & ((s["dod"] - s["intime"])
+                               <= pd.Timedelta(days=float(par["died_within_days"])))
+    n_blk = np.ceil((s["outtime"] - s["intime"]) / width).clip(lower=1)
+    cand = s.index[(died & (n_blk < max_blocks)).to_numpy()]
     if not len(cand):
         return pd.Index([], dtype="int64")
-    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], WITHDRAWAL_MAX_BLOCKS - 1,
-                        carry=True, opts=opts)
+    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], max_blocks - 1, carry=True,
+                        opts=opts)
     last = n_blk.loc[cand].astype("int64") - 1
     keep = blocks.index.get_level_values("blk").to_numpy() <= last.reindex(
         blocks.index.get_level_values(0)).to_numpy()
     blocks = blocks[keep]
     mx = blocks.groupby(level=0)[["sofa", "vaso"]].max()
-    lastrow = blocks.groupby(level=0).tail(1).droplevel(1)
-    flag = ((mx["vaso"] > 0.3) & (lastrow["vaso"].reindex(mx.index) == 0)
-            & (lastrow["sofa"].reindex(mx.index) >= mx["sofa"] / 2))
+    lastrow = blocks.groupby(level=0).tail(1).droplevel(1).reindex(mx.index)
+    flag = ((mx["vaso"] > par["max_vaso_gt"]) & (lastrow["vaso"] == par["last_vaso_eq"])
+            & (lastrow["sofa"] >= par["last_sofa_fraction"] * mx["sofa"]))
     return pd.Index(mx.index[flag.to_numpy()], dtype="int64")
 
 
