@@ -20,10 +20,8 @@ from twinfalsify.sources.mimic3 import extract_mimic3
 from twinfalsify.sources.mimic3.tables import connect
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
-DEMO = Path("/work/shared/data/mimic-iii-demo")
-for _cand in (Path(__file__).resolve().parents[2] / "shared" / "data" / "mimic-iii-demo",):
-    if _cand.is_dir():
-        DEMO = _cand
+_SHARED = Path(__file__).resolve().parents[2] / "shared"
+DEMO = (_SHARED if _SHARED.is_dir() else Path("/work/shared")) / "data" / "mimic-iii-demo"
 EARLY = pd.Timestamp("1700-01-01")
 VALUE_FEATURES = [f for f in schema.FEATURES if f not in ("age", "sex")]
 
