@@ -1,27 +1,36 @@
 """MIMIC-III v1.4 sepsis-3 cohort (AI-Clinician criteria with the paper's changes) as hourly
 trajectories over ``t_max`` + 1 hours from a time anchor t0 (ICU admission, or the first
-complete vital set), plus a CONSORT table, missingness and the anchor of each stay.
+complete vital set), plus a CONSORT table, missingness, the anchor of each stay and a
+per-stay audit table. No value of hour t depends on anything charted after the end of
+hour t (tests/test_mimic3_causality.py).
 
-Steps (each a row of the CONSORT table; docs/mimic3.md explains each and how it differs
-from the AI-Clinician code):
+Steps (each a row of the CONSORT table, ``STEPS``; every criterion is evaluated for every
+stay where it is defined; docs/mimic3.md explains each and how it differs from the
+AI-Clinician code; the switches are in ``options``):
  1. all ICU stays;
  2. adults: age >= 18 at ICU admission (INTIME - DOB; MIMIC's shifted ages > 89 set to 91.4);
  3. suspected infection: a systemic antibiotic and a culture, culture <= 24 h after the
     antibiotic or antibiotic <= 72 h after the culture (Seymour et al. 2016; onset = the
-    earlier of the pair, AI-Clinician's loop over antibiotics in time order);
+    earlier of the pair, AI-Clinician's loop over antibiotics in time order), onset within
+    [INTIME - 48 h, OUTTIME + 48 h] (``suspected_infection``);
  4. SOFA >= 2: the maximum over 4 h blocks of [onset - 48 h, onset + 24 h] of a SOFA score
-    from the components measurable in the raw tables (see ``max_sofa``), baseline 0;
- 5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present);
- 6. IV fluid / vasopressor intake documented (at least one INPUTEVENTS_MV/CV row);
- 7. treatment withdrawal excluded (AI-Clinician's rule, adapted: see ``withdrawn``);
+    from the components measurable in the raw tables (see ``max_sofa``), baseline 0; labs
+    only in [INTIME - 1 d, OUTTIME + 1 d];
+ 5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present; the project's own);
+ 6. IV fluid / vasopressor intake documented (an INPUTEVENTS_MV/CV row; the project's own);
+ 7. treatment withdrawal excluded (AI-Clinician's rule in full: ``withdrawn``);
  8. anchor: t = 0 is fixed. ``intime``: t = 0 at INTIME (excludes nothing).
     ``first_vitals`` (default): t = 0 at INTIME + k h for the first whole hour k within the
     first ``anchor_window_h`` ICU hours whose block has every vital (HR, SysBP, DiaBP,
     MeanBP, RR, Temp_C) after BP completion and sample-and-hold; stays without one excluded;
  9. ICU stay covers hours 0..t_max after the anchor (OUTTIME >= t0 + (t_max + 1) h);
-10. weight documented (a weight within 72 h before an hour, or charted during the stay);
+10. weight documented (charted in [INTIME - 72 h, OUTTIME]; hours without a weight charted
+    at or before their end imputed from other stays, or, ``weight_missing="exclude"``, a
+    weight charted or held in every hour);
 11. the paper's change: every vital (HR, SysBP, DiaBP, MeanBP, RR, Temp_C) present in each
-    hour t = 0..t_max after sample-and-hold.
+    hour t = 0..t_max after sample-and-hold;
+12. imputable: weight and labs still missing after sample-and-hold have a 1-NN donor among
+    other stays' rows of the same or an earlier hour.
 """
 
 from __future__ import annotations
@@ -719,16 +728,14 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
                             "anchor_h": offset.to_numpy("int64")})
     imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
-    audit = _audit(allst, inf, sofa, crit, t0_all, offset_all=t0_all.index, in_cohort=ids,
-                   imputed=after_hold_missing)
+    audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing)
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
                         missingness=missingness, anchors=anchors, imputed=imputed,
                         stays=audit, options=opts.as_dict())
 
 
 def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.DataFrame,
-           t0: pd.Series, offset_all, in_cohort: pd.Index, imputed: pd.DataFrame
-           ) -> pd.DataFrame:
+           t0: pd.Series, in_cohort: pd.Index, imputed: pd.DataFrame) -> pd.DataFrame:
     """One row per ICU stay: identifiers, onset (time, source, the antibiotic and culture
     times; also an onset outside the window, flagged), max SOFA and the organs scoring in
     its block, t0, each criterion (True / False / NA = not evaluated: the SOFA needs an
