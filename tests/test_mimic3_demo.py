@@ -11,6 +11,7 @@ import pytest
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3
 from twinfalsify.sources.mimic3.hourly import LABS
+from twinfalsify.sources.mimic3.options import PRESETS
 
 
 def _shared() -> Path:
@@ -25,8 +26,12 @@ pytestmark = [pytest.mark.slow,
                                  reason=f"MIMIC-III demo not present at {DEMO}")]
 # documented in docs/mimic3.md (CONSORT of the demo under each anchor)
 COUNTS = {
-    "intime": [136, 135, 94, 81, 81, 79, 76, 76, 75, 73, 27],
-    "first_vitals": [136, 135, 94, 81, 81, 79, 76, 74, 73, 71, 69],
+    "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 21, 21],
+    "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 60, 60],
+}
+COUNTS_AI_CLINICIAN = {
+    "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 20, 20],
+    "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 56, 56],
 }
 
 
@@ -43,7 +48,8 @@ def test_whole_demo(demo, anchor):
     assert c.tolist() == COUNTS[anchor]
     assert (res.consort["n_excluded"] >= 0).all()
     t = schema.validate_trajectories(res.trajectories)
-    assert t[schema.STAY_ID].nunique() == c["vitals_complete"] == len(res.anchors)
+    assert t[schema.STAY_ID].nunique() == c["imputable"] == len(res.anchors)
+    assert res.stays["in_cohort"].sum() == c["imputable"] and len(res.stays) == 136
     # plausible clinical ranges (the contract validation checks the wider plausibility ranges)
     assert t["HR"].between(30, 200).all() and t["Temp_C"].between(32, 42).all()
     assert t["age"].min() >= 18 and t["weight"].between(30, 250).all()
@@ -59,8 +65,8 @@ def test_whole_demo(demo, anchor):
 
 def test_first_vitals_extends_intime(demo):
     """Every stay kept at INTIME has a complete vital set in hour 0, so first_vitals anchors
-    it at INTIME too and gives it the same rows, except labs filled by 1-NN imputation
-    (donors are drawn from the larger cohort)."""
+    it at INTIME too and gives it the same rows, except weight and labs filled by 1-NN
+    imputation (donors are drawn from the larger cohort)."""
     i, f = demo["intime"], demo["first_vitals"]
     a = f.anchors.set_index(schema.STAY_ID)["anchor_h"]
     ids = sorted(i.trajectories[schema.STAY_ID].unique())
@@ -68,8 +74,17 @@ def test_first_vitals_extends_intime(demo):
     assert set(a.index[a == 0]) == set(ids)
     ti = i.trajectories.set_index([schema.STAY_ID, "t"])
     tf = f.trajectories.set_index([schema.STAY_ID, "t"]).loc[ti.index]
-    not_labs = [c for c in ti.columns if c not in LABS]
-    pd.testing.assert_frame_equal(ti[not_labs], tf[not_labs])
-    # labs differ only where imputed: at most the intime cohort's imputed count
-    n_diff = int((ti[list(LABS)] != tf[list(LABS)]).to_numpy().sum())
-    assert n_diff <= int(i.missingness["n_imputed"].sum())
+    imputable = ["weight", *LABS]
+    rest = [c for c in ti.columns if c not in imputable]
+    pd.testing.assert_frame_equal(ti[rest], tf[rest])
+    # weight and labs differ only where imputed
+    imp = i.imputed.set_index([schema.STAY_ID, "t"]).loc[ti.index, imputable].to_numpy()
+    diff = (ti[imputable] != tf[imputable]).to_numpy()
+    assert not (diff & ~imp).any()
+
+
+@pytest.mark.parametrize("anchor", list(COUNTS_AI_CLINICIAN))
+def test_ai_clinician_preset(anchor):
+    res = extract_mimic3(DEMO, anchor=anchor, options=PRESETS["ai_clinician"])
+    assert res.consort["n_stays"].tolist() == COUNTS_AI_CLINICIAN[anchor]
+    schema.validate_trajectories(res.trajectories)

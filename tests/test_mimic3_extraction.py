@@ -14,14 +14,14 @@ import pytest
 from twinfalsify import schema
 from twinfalsify.schema import ContractError
 from twinfalsify.sources.mimic3 import extract_mimic3, resolve_mimic3_dir
-from twinfalsify.sources.mimic3.cohort import _stays, suspected_infection
+from twinfalsify.sources.mimic3.cohort import STEPS, _stays, suspected_infection
 from twinfalsify.sources.mimic3.tables import connect, find_table
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
 S1, S2, S12 = 200001, 200002, 200012
-STEPS = ["all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortality_documented",
-         "intake_documented", "not_withdrawn", "anchor", "stay_covers_window",
-         "weight_documented", "vitals_complete"]
+# the cohort under anchor=intime: S1, S2 (hand-computed values), S9 (weaned, not a
+# withdrawal), and the stays of issue 15's bugs that the old code excluded or got wrong
+COHORT_INTIME = [200001, 200002, 200009, 200016, 200017, 200019, 200020, 200022, 200023]
 
 
 @pytest.fixture(scope="module")
@@ -34,27 +34,28 @@ def cohort_fv():
     return extract_mimic3(FIX, anchor="first_vitals")
 
 
-def test_consort_counts_each_step_excludes_one_stay(cohort):
+def test_consort_counts_each_step(cohort):
     c = cohort.consort
-    assert list(c["step"]) == STEPS
-    # 13 stays; under anchor=intime the anchor step excludes nothing, and S12/S13 (vitals
-    # 1 h / 6 h late) join S4 at vitals_complete: hour [INTIME, INTIME + 1 h) has no vitals
-    assert list(c["n_stays"]) == [13, 12, 11, 10, 9, 8, 7, 7, 6, 5, 2]
-    assert list(c["n_excluded"]) == [0, 1, 1, 1, 1, 1, 1, 0, 1, 1, 3]
-    assert sorted(cohort.trajectories[schema.STAY_ID].unique()) == [S1, S2]
+    assert list(c["step"]) == list(STEPS)
+    # 24 stays (README); under anchor=intime the anchor step excludes nothing, and S12/S13
+    # (vitals 1 h / 6 h late) join S4 at vitals_complete: [INTIME, INTIME + 1 h) has none
+    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 14, 13, 12, 9, 9]
+    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 0, 1, 1, 3, 0]
+    assert sorted(cohort.trajectories[schema.STAY_ID].unique()) == COHORT_INTIME
     assert (cohort.anchors["anchor_h"] == 0).all()
     assert (cohort.anchors["t0"] == cohort.anchors["intime"]).all()
 
 
-def test_first_vitals_consort_each_step_excludes_one_stay(cohort_fv):
+def test_first_vitals_consort(cohort_fv):
     c = cohort_fv.consort
-    assert list(c["step"]) == STEPS
+    assert list(c["step"]) == list(STEPS)
     # S13 has no complete vital set in the first 6 ICU hours (anchor step); S12 is kept
-    assert list(c["n_stays"]) == [13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3]
-    assert list(c["n_excluded"]) == [0] + [1] * 10
-    assert sorted(cohort_fv.trajectories[schema.STAY_ID].unique()) == [S1, S2, S12]
+    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 13, 12, 11, 10, 10]
+    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 1, 1, 1, 1, 0]
+    assert sorted(cohort_fv.trajectories[schema.STAY_ID].unique()) == sorted(
+        [*COHORT_INTIME, S12])
     a = cohort_fv.anchors.set_index(schema.STAY_ID)
-    assert a["anchor_h"].to_dict() == {S1: 0, S2: 0, S12: 1}
+    assert a["anchor_h"].to_dict() == {**dict.fromkeys(COHORT_INTIME, 0), S12: 1}
     assert a.loc[S12, "t0"] == pd.Timestamp("2150-01-03 11:00:00")  # INTIME 10:00 + 1 h
 
 
@@ -77,11 +78,16 @@ def test_first_vitals_late_stay_aligned_to_anchor(cohort_fv):
 
 
 def test_first_vitals_leaves_intime_anchored_stays_unchanged(cohort, cohort_fv):
-    # S1, S2 have vitals in hour 0: anchor 0, so both anchors give identical rows (labs are
-    # complete, so 1-NN imputation, which depends on the cohort, touches nothing)
+    # the intime cohort's stays have vitals in hour 0: anchor 0, so both anchors give
+    # identical rows, except imputed cells (1-NN donors come from the cohort, which differs)
     a = cohort.trajectories.set_index([schema.STAY_ID, "t"])
     b = cohort_fv.trajectories.set_index([schema.STAY_ID, "t"]).loc[a.index]
-    pd.testing.assert_frame_equal(a, b)
+    imp = cohort.imputed.set_index([schema.STAY_ID, "t"]).loc[a.index]
+    keep = [c for c in a.columns if c not in imp.columns]
+    pd.testing.assert_frame_equal(a[keep], b[keep])
+    for col in imp.columns:
+        own = ~imp[col].to_numpy()
+        np.testing.assert_array_equal(a[col].to_numpy()[own], b[col].to_numpy()[own])
 
 
 def test_anchor_window_bounds_the_search():
@@ -89,7 +95,7 @@ def test_anchor_window_bounds_the_search():
     # 0..5), inside a 7 h window, where it is kept with t = 0 at INTIME + 6 h
     res = extract_mimic3(FIX, anchor="first_vitals", anchor_window_h=7)
     a = res.anchors.set_index(schema.STAY_ID)["anchor_h"]
-    assert a.to_dict() == {S1: 0, S2: 0, S12: 1, 200013: 6}
+    assert a.to_dict() == {**dict.fromkeys(COHORT_INTIME, 0), S12: 1, 200013: 6}
     assert res.consort.set_index("step").loc["anchor", "n_excluded"] == 0
     s = _stay(res, 200013)
     assert s["HR"].tolist() == [80, 100, 90, 85, 95]
@@ -112,11 +118,14 @@ def test_bad_anchor_is_named():
 def test_onset_rules():
     con = connect(FIX)
     stays = _stays(con)
-    onset = suspected_infection(con, stays)
+    inf = suspected_infection(con, stays)
+    onset = inf["onset"]
     # S1: antibiotic 2150-01-03 00:00, culture 08:00 (8 h later) -> onset = antibiotic
     assert onset[S1] == pd.Timestamp("2150-01-03 00:00:00")
+    assert inf.loc[S1, "onset_source"] == "antibiotic"
     # S2: culture 2160-05-04 12:00, antibiotic 2160-05-05 00:00 (12 h later) -> onset = culture
     assert onset[S2] == pd.Timestamp("2160-05-04 12:00:00")
+    assert inf.loc[S2, "onset_source"] == "culture"
     # S3: antibiotic 4 days after the culture: outside both windows
     assert 200003 not in onset.index
     assert 200005 in onset.index  # the minor has an infection; excluded for age, not here
@@ -125,7 +134,7 @@ def test_onset_rules():
 def test_trajectories_pass_contract(cohort):
     t = schema.validate_trajectories(cohort.trajectories)
     assert list(t.columns) == list(schema.TRAJECTORY_COLUMNS)
-    assert (t.groupby(schema.STAY_ID)["t"].apply(list) == [[0, 1, 2, 3, 4]] * 2).all()
+    assert all(v == [0, 1, 2, 3, 4] for v in t.groupby(schema.STAY_ID)["t"].apply(list))
 
 
 def _stay(cohort, sid):
@@ -168,11 +177,15 @@ def test_carevue_stay_hourly_values(cohort):
 def test_missingness_report(cohort):
     m = cohort.missingness.set_index(["feature", "t"])
     assert set(m.columns) >= {"n_missing_raw", "share_missing_raw"}
-    # temperatures: S1 raw at t = 0, 3; S2 raw at t = 0, 2
-    assert [m.loc[("Temp_C", t), "n_missing_raw"] for t in range(5)] == [0, 2, 1, 1, 2]
-    # labs were all drawn before ICU admission: raw-missing in every hour, none imputed
-    assert (m.xs("Sodium", level="feature")["n_missing_raw"] == 2).all()
-    assert (m.xs("Sodium", level="feature")["n_imputed"] == 0).all()
+    # temperatures: S2 raw at t = 0, 2; the 8 other stays raw at t = 0, 3
+    assert [m.loc[("Temp_C", t), "n_missing_raw"] for t in range(5)] == [0, 9, 8, 1, 9]
+    # labs drawn before ICU admission: raw-missing in every hour, except S17's sodium
+    # (drawn at INTIME + 3:30: raw at t = 3, held at t = 4, imputed at t = 0..2)
+    na = m.xs("Sodium", level="feature")
+    assert na["n_missing_raw"].tolist() == [9, 9, 9, 8, 9]
+    assert na["n_imputed"].tolist() == [1, 1, 1, 0, 0]
+    # S16's weight, charted at INTIME + 2:10, is imputed at t = 0, 1
+    assert m.xs("weight", level="feature")["n_imputed"].tolist() == [1, 1, 0, 0, 0]
     assert m.loc[("HR", 0), "share_missing_raw"] == 0.0
 
 
@@ -227,3 +240,85 @@ def test_resolve_dir_env_override(tmp_path, monkeypatch):
     monkeypatch.delenv("TWINFALSIFY_MIMIC3_DIR")
     with pytest.raises(ContractError, match="TWINFALSIFY_MIMIC3_DIR"):
         resolve_mimic3_dir(None)
+
+
+# --- issue 15: one fixture stay per bug; the old code got each wrong (tests/fixtures/mimic3
+# README: the old extraction kept S14, S15, S21, S24, excluded S9, S19, S20, S23 and gave
+# S16 / S17 values from later hours)
+
+def _audit(cohort):
+    return cohort.stays.set_index(schema.STAY_ID)
+
+
+def test_onset_outside_the_stay_window_is_dropped(cohort):
+    # S14: the admission's only stay; antibiotic 86 h after OUTTIME
+    a = _audit(cohort).loc[200014]
+    assert a["onset"] == pd.Timestamp("2150-01-08 00:00:00")
+    assert not a["onset_in_window"] and a["excluded_at"] == "suspected_infection"
+
+
+def test_labs_before_the_lab_window_do_not_count(cohort):
+    # S15: platelets 80 drawn 40 h before INTIME (inside the SOFA window around the onset,
+    # outside [INTIME - 1 d, OUTTIME + 1 d]): SOFA 0
+    a = _audit(cohort).loc[200015]
+    assert a["max_sofa"] == 0 and a["excluded_at"] == "sofa_ge_2"
+
+
+def test_weight_never_comes_from_a_later_hour(cohort):
+    # S16: weight 95 kg charted at INTIME + 2:10 only. Hours 0, 1 are imputed from other
+    # stays' rows of hours <= t: the nearest are the template stays (identical vitals and
+    # labs, distance 0), the first of which is S1 (70 kg)
+    s = _stay(cohort, 200016)
+    assert s["weight"].tolist() == [70.0, 70.0, 95.0, 95.0, 95.0]
+    imp = cohort.imputed.set_index([schema.STAY_ID, "t"]).loc[200016, "weight"]
+    assert imp.tolist() == [True, True, False, False, False]
+
+
+def test_imputation_never_uses_the_stays_own_later_hours(cohort):
+    # S17: vitals 30 above every other stay's, so its own rows are its nearest neighbours;
+    # sodium 150 drawn at INTIME + 3:30 only. Hours 0..2 take 140 from other stays (the
+    # old 1-NN over all rows took 150 from S17's own hour 3)
+    assert _stay(cohort, 200017)["Sodium"].tolist() == [140.0, 140.0, 140.0, 150.0, 150.0]
+
+
+def test_withdrawal_needs_the_last_sofa_condition(cohort):
+    a = _audit(cohort)
+    # S9: vasopressor stopped, then recovered (last SOFA 2 < 6 / 2): kept
+    assert a.loc[200009, "in_cohort"] and a.loc[200009, "not_withdrawn"]
+    # S18: same, but bilirubin 7 at 38 h keeps the last SOFA at 5 >= 6 / 2: withdrawal
+    assert a.loc[200018, "excluded_at"] == "not_withdrawn"
+
+
+def test_smaller_items(cohort):
+    a = _audit(cohort)
+    # S19: cefpodoxime is an antibiotic
+    assert a.loc[200019, "suspected_infection"] and a.loc[200019, "in_cohort"]
+    # S20: a culture charted in CHARTEVENTS (225401) counts
+    assert a.loc[200020, "culture_time"] == a.loc[200020, "intime"] - pd.Timedelta(hours=2)
+    assert a.loc[200020, "in_cohort"]
+    # S21 / S22: an antibiotic with PRESCRIPTIONS.ICUSTAY_ID = S22 belongs to S22 only
+    assert pd.isna(a.loc[200021, "onset"]) and a.loc[200021, "excluded_at"] == (
+        "suspected_infection")
+    assert a.loc[200022, "onset"] == pd.Timestamp("2150-01-06 00:00:00")
+    # S23: weight charted as CareVue 581 (kg)
+    assert (_stay(cohort, 200023)["weight"] == 82.0).all()
+    # S24: GCS 8 with an intubated verbal score is not assessable: SOFA 0
+    assert a.loc[200024, "max_sofa"] == 0 and a.loc[200024, "excluded_at"] == "sofa_ge_2"
+
+
+def test_audit_table_one_row_per_stay_every_reason(cohort):
+    a = _audit(cohort)
+    assert len(a) == 24 and a.index.is_unique
+    assert set(a.index[a["in_cohort"]]) == set(COHORT_INTIME)
+    assert (a.loc[a["in_cohort"], "excluded_at"].fillna("") == "").all()
+    # every failed criterion is listed, not only the first: the minor S5 also fails nothing
+    # else; S11 (no weight) fails only weight_documented
+    assert a.loc[200005, "reasons"] == "adult"
+    assert a.loc[200011, "reasons"] == "weight_documented"
+    # the first failed step is the CONSORT step that excluded the stay
+    excl = a.loc[~a["in_cohort"], "excluded_at"].value_counts()
+    c = cohort.consort.set_index("step")["n_excluded"]
+    assert all(excl.get(step, 0) == c[step] for step in STEPS[1:])
+    # organs behind the SOFA: S1 coagulation 2 + cardiovascular 4
+    assert a.loc[S1, "sofa_organs"] == "coagulation=2;cardiovascular=4"
+    assert a.loc[S1, "n_imputed_cells"] == 0 and a.loc[200016, "n_imputed_cells"] == 2

@@ -7,18 +7,22 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from twinfalsify.sources.mimic3 import doses, hourly
+from twinfalsify.schema import ContractError
+from twinfalsify.sources.mimic3 import cohort, doses, hourly
 from twinfalsify.sources.mimic3.tables import data_table, data_version
 
 T0 = pd.Timestamp("2150-01-01 10:00")
 
 
 def test_data_tables_have_meaning_and_version():
-    for name in ("items.csv", "unit_conversions.csv", "outlier_limits.csv", "sample_and_hold.csv",
-                 "vasopressors.csv", "fluids.csv", "antibiotics.csv"):
+    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "1",
+                "sample_and_hold.csv": "1", "vasopressors.csv": "1", "fluids.csv": "1",
+                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "1",
+                "withdrawal.csv": "1"}
+    for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name
-        assert data_version(name) == "1"
+        assert data_version(name) == version, name
     items = data_table("items.csv")
     assert not items.duplicated(["itemid", "source"]).any()
 
@@ -71,25 +75,106 @@ def test_block_means_and_sample_and_hold_boundary():
     assert np.isnan(held["HR"].iloc[4])
 
 
+def _brute_knn(x, groups, times):
+    """1-NN by the definition: donors of other groups at times <= t, scale = column sd
+    (ddof 0) over exactly those donor-eligible rows, mean squared scaled difference over
+    the shared columns, first row on ties."""
+    out = x.copy()
+    obs = np.isfinite(x)
+    for i, j in zip(*np.nonzero(~obs), strict=True):
+        elig = (groups != groups[i]) & (times <= times[i])
+        sd = np.nanstd(np.where(elig[:, None], x, np.nan), axis=0)
+        sd[~np.isfinite(sd) | (sd == 0)] = 1.0
+        best, bestd = None, np.inf
+        for k in np.flatnonzero(elig & obs[:, j]):
+            sh = obs[i] & obs[k]
+            if not sh.any():
+                continue
+            d = np.mean(((x[i, sh] - x[k, sh]) / sd[sh]) ** 2)
+            if d < bestd:
+                best, bestd = k, d
+        if best is not None:
+            out[i, j] = x[best, j]
+    return out
+
+
 def test_knn_impute_matches_brute_force():
     rng = np.random.default_rng(3)
     x = rng.normal(size=(40, 5)) * [1, 10, 100, 1, 5]
     mask = rng.random(x.shape) < 0.2
     mask[:, 0] = False
     xm = np.where(mask, np.nan, x)
-    out = hourly.knn_impute(xm)
-    sd = np.nanstd(xm, axis=0)
-    for i, j in zip(*np.nonzero(mask), strict=True):
-        best, bestd = None, np.inf
-        for k in range(len(x)):
-            if k == i or mask[k, j]:
-                continue
-            sh = ~mask[i] & ~mask[k]
-            d = np.mean(((xm[i, sh] - xm[k, sh]) / sd[sh]) ** 2)
-            if d < bestd:
-                best, bestd = k, d
-        assert out[i, j] == xm[best, j]
+    groups, times = np.repeat(np.arange(8), 5), np.tile(np.arange(5), 8)
+    out = hourly.knn_impute(xm, groups, times)
+    np.testing.assert_array_equal(out, _brute_knn(xm, groups, times))
     assert np.array_equal(out[~mask], x[~mask])
+    # without groups / times: every other row is a donor (leave-one-out scale)
+    np.testing.assert_array_equal(hourly.knn_impute(xm),
+                                  _brute_knn(xm, np.arange(40), np.zeros(40)))
+
+
+def test_knn_impute_is_causal_and_never_uses_the_own_stay():
+    """Perturbing every row of a later hour (any stay) or any other row of the same stay
+    changes no imputed value of hour t of that stay."""
+    rng = np.random.default_rng(5)
+    n_stays, T = 30, 5
+    groups, times = np.repeat(np.arange(n_stays), T), np.tile(np.arange(T), n_stays)
+    x = rng.normal(size=(n_stays * T, 6)) * [1, 2, 3, 1, 5, 10]
+    x[rng.random(x.shape) < 0.25] = np.nan
+    out = hourly.knn_impute(x, groups, times)
+    for t in range(T - 1):
+        y = x.copy()
+        later = times > t
+        y[later] = y[later] * rng.uniform(0.5, 1.5, size=y[later].shape) + 1.0
+        out2 = hourly.knn_impute(y, groups, times)
+        np.testing.assert_array_equal(out2[~later], out[~later])
+        assert not np.array_equal(out2[later], out[later], equal_nan=True)
+    # a stay's own other rows: perturb all of stay 0 but its hour-2 row
+    y = x.copy()
+    own = (groups == 0) & (times != 2)
+    y[own] = y[own] * 3.0 + 7.0
+    out3 = hourly.knn_impute(y, groups, times)
+    row = np.flatnonzero((groups == 0) & (times == 2))
+    np.testing.assert_array_equal(out3[row], out[row])
+    # the old definition (all rows are donors, one global scale) fails the first property
+    old = hourly.knn_impute(x, np.arange(len(x)), np.zeros(len(x)))
+    y = x.copy()
+    y[times > 0] += 100.0
+    old2 = hourly.knn_impute(y, np.arange(len(x)), np.zeros(len(x)))
+    assert not np.array_equal(old2[times == 0], old[times == 0], equal_nan=True)
+
+
+def test_sample_and_hold_last_hour_mean():
+    intime = pd.Series({7: T0})
+    h = pd.Timedelta(hours=1)
+    # hour 0: 80 at 0:15 and 100 at 0:45; nothing after
+    ev = pd.DataFrame({"icustay_id": 7, "feature": "HR",
+                       "time": [T0 + 0.25 * h, T0 + 0.75 * h], "value": [80.0, 100.0]})
+    b = hourly.block_means(ev, intime, ("HR",), 4)
+    last = hourly.sample_and_hold(b, ev, intime, how="last_value")
+    mean = hourly.sample_and_hold(b, ev, intime, how="last_hour_mean")
+    # hold 2 h after the last value (0:45): blocks 1 (1:00) and 2 (2:00) held
+    assert last["HR"].tolist()[:3] == [90.0, 100.0, 100.0]
+    assert mean["HR"].tolist()[:3] == [90.0, 90.0, 90.0]
+    assert np.isnan(last["HR"].iloc[3]) and np.isnan(mean["HR"].iloc[3])
+    with pytest.raises(ContractError, match="how must be one of"):
+        hourly.sample_and_hold(b, ev, intime, how="next_value")
+
+
+def test_complete_bp_keeps_impossible_values_missing():
+    b = pd.DataFrame({"SysBP": [120.0, 200.0], "MeanBP": [80.0, 60.0],
+                      "DiaBP": [np.nan, np.nan]})
+    out = hourly.complete_bp(b)
+    assert out["DiaBP"].iloc[0] == 60.0  # (3 x 80 - 120) / 2
+    assert np.isnan(out["DiaBP"].iloc[1])  # (180 - 200) / 2 < 0: deleted like an outlier
+
+
+def test_renal_sofa_from_urine_output():
+    b = pd.DataFrame({c: [np.nan] * 4 for c in ("pf", "sofa_platelets", "sofa_bilirubin",
+                                                 "MeanBP", "vaso", "sofa_gcs")})
+    b["sofa_creatinine"] = [1.0, 1.0, 1.0, 6.0]
+    b["uo"] = [np.nan, 50.0, 20.0, 500.0]  # not charted / < 84 / < 34 / plenty
+    assert cohort.sofa_components(b)["renal"].tolist() == [0, 3, 4, 4]
 
 
 @pytest.mark.parametrize("system,item,rate,uom,expected", [
@@ -151,8 +236,10 @@ def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
     x[150:200] = x[100:150]
     x[rng.random(x.shape) < 0.3] = np.nan
     x[7] = np.nan  # a row with nothing observed stays NaN
-    for chunk, batch in ((10_000, 512), (120, 7)):
-        fast = hourly.knn_impute(x, chunk=chunk, batch=batch)
-        slow = hourly._knn_impute_direct(x, chunk=chunk)
+    stays = (None, None), (np.repeat(np.arange(60), 5), np.tile(np.arange(5), 60))
+    for (groups, times), (chunk, batch) in zip(stays * 2, ((10_000, 512), (10_000, 512),
+                                                           (120, 7), (120, 7)), strict=True):
+        fast = hourly.knn_impute(x, groups, times, chunk=chunk, batch=batch)
+        slow = hourly._knn_impute_direct(x, groups, times, chunk=chunk)
         np.testing.assert_array_equal(fast, slow)
-    assert np.isnan(fast[7]).all()
+        assert np.isnan(fast[7]).all()

@@ -28,11 +28,11 @@ def _shared() -> Path:
 
 
 DEMO = _shared() / "data" / "mimic-iii-demo"
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
-                                 reason=f"MIMIC-III demo not present at {DEMO}")]
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
+                    reason=f"MIMIC-III demo not present at {DEMO}")
 def test_demo_study_end_to_end(tmp_path):
     config = tmp_path / "mimic3-demo.yaml"
     shutil.copy(ROOT / "config" / "mimic3-demo.yaml", config)
@@ -78,3 +78,57 @@ def test_demo_study_end_to_end(tmp_path):
         assert m, log[-2000:]
         assert (int(m.group(1)), int(m.group(2))) == (untestable, len(hyps))
         assert (out / "twins" / tw / "tables" / "rejections.csv").is_file()
+
+
+FIX = ROOT / "tests" / "fixtures" / "mimic3"
+
+
+def test_data_fingerprint_follows_folder_and_files(tmp_path, monkeypatch):
+    from twinfalsify.sources.mimic3_rule import data_params
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(FIX, a)
+    shutil.copytree(FIX, b)
+    monkeypatch.delenv("TWINFALSIFY_MIMIC3_DIR", raising=False)
+    pa, pb = data_params({"path": str(a)}), data_params({"path": str(b)})
+    assert pa != pb and str(a) in pa  # same files, another folder
+    monkeypatch.setenv("TWINFALSIFY_MIMIC3_DIR", str(b))
+    assert data_params({"path": str(a)}) == pb  # the variable overrides the config
+    monkeypatch.delenv("TWINFALSIFY_MIMIC3_DIR")
+    f = a / "LABEVENTS.csv"
+    os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 10**9))
+    assert data_params({"path": str(a)}) != pa  # a file changed (mtime)
+    assert data_params({"path": str(tmp_path / "nope")}) == "unresolved"
+
+
+def test_another_mimic3_dir_reruns_the_extraction(tmp_path):
+    """Issue 15: with TWINFALSIFY_MIMIC3_DIR pointing elsewhere the trajectories rule must
+    run again (before, the old cohort silently stood)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(FIX, a)
+    shutil.copytree(FIX, b)
+    cfg = {"study": "fp", "seed": 1,
+           "source": {"kind": "mimic3", "mimic3": {"path": None, "threads": 1}},
+           "split": {"d0_fraction": 0.4}, "design": {"min_support": 1},
+           "twin_runs": {"runs_per_sequence": None, "n_shards": 1},
+           "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
+           "testing": {"alpha": 0.05, "correction": "holm",
+                       "methods": {"hoeffding": {"factor": 2}}}}
+    config = tmp_path / "fp.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    target = "results/fp/trajectories.parquet"
+
+    def snake(folder, *args):
+        env = {**os.environ, "TWINFALSIFY_MIMIC3_DIR": str(folder)}
+        cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
+               str(tmp_path), "--configfile", str(config), "--cores", "1", *args, target]
+        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+
+    run = snake(a)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert (tmp_path / "results/fp/cohort/stays.csv").is_file()
+    again = snake(a, "-n")
+    assert "Nothing to be done" in again.stdout + again.stderr
+    other = snake(b, "-n")
+    out = other.stdout + other.stderr
+    assert other.returncode == 0 and "rule trajectories" in out, out[-3000:]

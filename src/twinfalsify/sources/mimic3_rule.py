@@ -2,31 +2,58 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from twinfalsify.io import log, write_csv
+from twinfalsify.io import log, write_csv, write_text
+from twinfalsify.schema import ContractError
+
+
+def data_params(cfg: dict[str, Any] | None) -> str:
+    """The ``trajectories`` rule's data parameter for a mimic3 source: the resolved MIMIC-III
+    folder (config path or $TWINFALSIFY_MIMIC3_DIR) and a fingerprint of its files' names,
+    sizes and mtimes, as JSON. Another folder, or a changed file, changes it, and Snakemake
+    reruns the extraction. An unresolvable folder gives a fixed string: the rule itself then
+    fails with the one-line error."""
+    from twinfalsify.sources.mimic3.tables import data_fingerprint, resolve_mimic3_dir
+
+    try:
+        folder = resolve_mimic3_dir((cfg or {}).get("path"))
+    except ContractError:
+        return "unresolved"
+    return json.dumps(data_fingerprint(folder), sort_keys=True)
 
 
 def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
     """Extract the cohort from ``cfg['path']`` (or $TWINFALSIFY_MIMIC3_DIR) with the time
-    anchor ``cfg['anchor']`` (``first_vitals`` by default, see docs/mimic3.md) and
-    ``cfg['anchor_window_h']``; write cohort/consort.csv, cohort/missingness.csv and
-    cohort/anchors.csv next to the trajectories."""
+    anchor ``cfg['anchor']`` (``first_vitals`` by default, see docs/mimic3.md),
+    ``cfg['anchor_window_h']`` and the switches / ``cohort_variant`` preset of
+    ``options.options_from_config``; write cohort/consort.csv, cohort/missingness.csv,
+    cohort/anchors.csv, cohort/stays.csv (one audit row per ICU stay) and
+    cohort/options.json next to the trajectories."""
     from twinfalsify.sources.mimic3 import extract_mimic3, resolve_mimic3_dir
     from twinfalsify.sources.mimic3.cohort import ANCHOR_WINDOW_H
+    from twinfalsify.sources.mimic3.options import options_from_config
+    from twinfalsify.sources.mimic3.tables import data_fingerprint
 
     folder = resolve_mimic3_dir(cfg.get("path"))
     anchor = cfg.get("anchor") or "first_vitals"
     window = int(cfg.get("anchor_window_h") or ANCHOR_WINDOW_H)
+    opts = options_from_config(cfg)
     cohort = extract_mimic3(folder, threads=int(cfg.get("threads", 2)), anchor=anchor,
-                            anchor_window_h=window)
+                            anchor_window_h=window, options=opts)
     c = cohort.consort
-    log.info("MIMIC-III cohort from %s, anchor %s: %s", folder, anchor,
-             ", ".join(f"{s} {n}" for s, n in zip(c["step"], c["n_stays"], strict=True)))
+    log.info("MIMIC-III cohort from %s, anchor %s, options %s: %s", folder, anchor,
+             opts.as_dict(), ", ".join(f"{s} {n}" for s, n in
+                                       zip(c["step"], c["n_stays"], strict=True)))
     write_csv(cohort.consort, out_dir / "cohort" / "consort.csv")
     write_csv(cohort.missingness, out_dir / "cohort" / "missingness.csv")
     write_csv(cohort.anchors, out_dir / "cohort" / "anchors.csv")
+    write_csv(cohort.stays, out_dir / "cohort" / "stays.csv")
+    meta = {"data": data_fingerprint(folder), "anchor": anchor, "anchor_window_h": window,
+            "cohort_variant": cfg.get("cohort_variant") or "project", "options": opts.as_dict()}
+    write_text(json.dumps(meta, indent=1) + "\n", out_dir / "cohort" / "options.json")
     return cohort.trajectories

@@ -1,27 +1,36 @@
 """MIMIC-III v1.4 sepsis-3 cohort (AI-Clinician criteria with the paper's changes) as hourly
 trajectories over ``t_max`` + 1 hours from a time anchor t0 (ICU admission, or the first
-complete vital set), plus a CONSORT table, missingness and the anchor of each stay.
+complete vital set), plus a CONSORT table, missingness, the anchor of each stay and a
+per-stay audit table. No value of hour t depends on anything charted after the end of
+hour t (tests/test_mimic3_causality.py).
 
-Steps (each a row of the CONSORT table; docs/mimic3.md explains each and how it differs
-from the AI-Clinician code):
+Steps (each a row of the CONSORT table, ``STEPS``; every criterion is evaluated for every
+stay where it is defined; docs/mimic3.md explains each and how it differs from the
+AI-Clinician code; the switches are in ``options``):
  1. all ICU stays;
  2. adults: age >= 18 at ICU admission (INTIME - DOB; MIMIC's shifted ages > 89 set to 91.4);
  3. suspected infection: a systemic antibiotic and a culture, culture <= 24 h after the
     antibiotic or antibiotic <= 72 h after the culture (Seymour et al. 2016; onset = the
-    earlier of the pair, AI-Clinician's loop over antibiotics in time order);
+    earlier of the pair, AI-Clinician's loop over antibiotics in time order), onset within
+    [INTIME - 48 h, OUTTIME + 48 h] (``suspected_infection``);
  4. SOFA >= 2: the maximum over 4 h blocks of [onset - 48 h, onset + 24 h] of a SOFA score
-    from the components measurable in the raw tables (see ``max_sofa``), baseline 0;
- 5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present);
- 6. IV fluid / vasopressor intake documented (at least one INPUTEVENTS_MV/CV row);
- 7. treatment withdrawal excluded (AI-Clinician's rule, adapted: see ``withdrawn``);
+    from the components measurable in the raw tables (see ``max_sofa``), baseline 0; labs
+    only in [INTIME - 1 d, OUTTIME + 1 d];
+ 5. mortality documented (ADMISSIONS.HOSPITAL_EXPIRE_FLAG present; the project's own);
+ 6. IV fluid / vasopressor intake documented (an INPUTEVENTS_MV/CV row; the project's own);
+ 7. treatment withdrawal excluded (AI-Clinician's rule in full: ``withdrawn``);
  8. anchor: t = 0 is fixed. ``intime``: t = 0 at INTIME (excludes nothing).
     ``first_vitals`` (default): t = 0 at INTIME + k h for the first whole hour k within the
     first ``anchor_window_h`` ICU hours whose block has every vital (HR, SysBP, DiaBP,
     MeanBP, RR, Temp_C) after BP completion and sample-and-hold; stays without one excluded;
  9. ICU stay covers hours 0..t_max after the anchor (OUTTIME >= t0 + (t_max + 1) h);
-10. weight documented (a weight within 72 h before an hour, or charted during the stay);
+10. weight documented (charted in [INTIME - 72 h, OUTTIME]; hours without a weight charted
+    at or before their end imputed from other stays, or, ``weight_missing="exclude"``, a
+    weight charted or held in every hour);
 11. the paper's change: every vital (HR, SysBP, DiaBP, MeanBP, RR, Temp_C) present in each
-    hour t = 0..t_max after sample-and-hold.
+    hour t = 0..t_max after sample-and-hold;
+12. imputable: weight and labs still missing after sample-and-hold have a 1-NN donor among
+    other stays' rows of the same or an earlier hour.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
+import duckdb
 import numpy as np
 import pandas as pd
 
@@ -37,7 +47,8 @@ from twinfalsify import schema
 from twinfalsify.schema import ContractError
 
 from . import doses, hourly
-from .tables import connect, data_table
+from .options import Mimic3Options
+from .tables import REQUIRED_COLUMNS, connect, data_table, diagnose
 
 HOUR = pd.Timedelta(hours=1)
 AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
@@ -49,6 +60,9 @@ class Mimic3Cohort:
     consort: pd.DataFrame  # step, description, n_stays, n_excluded
     missingness: pd.DataFrame  # feature, t, n_missing_raw, share_missing_raw, n_imputed
     anchors: pd.DataFrame  # stay_id, intime, t0 (time of t = 0), anchor_h (t0 - INTIME, h)
+    imputed: pd.DataFrame | None = None  # stay_id, t, weight + labs: True = imputed cell
+    stays: pd.DataFrame | None = None  # per ICU stay: onset, SOFA, every criterion (_audit)
+    options: dict | None = None  # the switches used (options.Mimic3Options)
 
 
 class _Consort:
@@ -92,27 +106,72 @@ def _stays(con) -> pd.DataFrame:
     return df.set_index("icustay_id", drop=False)
 
 
-def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame) -> pd.DataFrame:
-    """Give each hospital-level event (hadm_id, time) an ICU stay: a stay of the same
-    admission with INTIME - 48 h <= time <= OUTTIME + 48 h, or the admission's only stay
-    (AI-Clinician's rule for antibiotics and cultures without ICUSTAY_ID)."""
+ONSET_WINDOW = pd.Timedelta(hours=48)  # AI-Clinician: events and onset in [in - 48 h, out + 48 h]
+LAB_WINDOW = pd.Timedelta(days=1)  # AI-Clinician: labs kept in [INTIME - 1 d, OUTTIME + 1 d]
+
+
+EVENT_STAY = ("nearest", "last")
+
+
+def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame, rule: str = "nearest"
+                     ) -> pd.DataFrame:
+    """Give each event (hadm_id, icustay_id or NaN, time) one ICU stay, as AI-Clinician
+    fills icustay ids of antibiotics and cultures (sepsis-3 onset code):
+
+    - an event with an ICUSTAY_ID keeps it (dropped if that stay is not among ``stays``);
+    - otherwise a stay of the same admission with INTIME - 48 h <= time <= OUTTIME + 48 h;
+      when several qualify, ``rule="nearest"`` takes the one whose [INTIME, OUTTIME] is
+      nearest to the event (0 inside; ties: earlier INTIME), ``"last"`` the last by INTIME
+      (AI-Clinician's loop, where a later match overwrites an earlier one);
+    - when none qualifies, the admission's only stay, if it has one.
+
+    Returns icustay_id, time (plus the other columns of ``events``)."""
     s = stays[["icustay_id", "hadm_id", "intime", "outtime"]].reset_index(drop=True)
-    m = events.merge(s, on="hadm_id")
+    ev = events.reset_index(drop=True).assign(_row=lambda d: np.arange(len(d)))
+    if "icustay_id" not in ev:
+        ev["icustay_id"] = np.nan
+    has = ev["icustay_id"].notna()
+    direct = ev[has].astype({"icustay_id": "int64"})
+    direct = direct[direct["icustay_id"].isin(s["icustay_id"])]
+    rest = ev[~has].drop(columns="icustay_id")
+    m = rest.merge(s, on="hadm_id")
+    inwin = (m["time"] >= m["intime"] - ONSET_WINDOW) & (m["time"] <= m["outtime"] + ONSET_WINDOW)
+    win = m[inwin]
+    if rule == "last":
+        win = win.sort_values(["_row", "intime"], kind="stable").drop_duplicates(
+            "_row", keep="last")
+    else:
+        dist = np.maximum(np.maximum((win["intime"] - win["time"]) / HOUR,
+                                     (win["time"] - win["outtime"]) / HOUR), 0.0)
+        win = win.assign(_d=dist).sort_values(["_row", "_d", "intime"], kind="stable")
+        win = win.drop_duplicates("_row", keep="first")
     n_per_adm = s.groupby("hadm_id")["icustay_id"].transform("count")
-    only = s.assign(n=n_per_adm).set_index("icustay_id")["n"] == 1
-    inwin = (m["time"] >= m["intime"] - 48 * HOUR) & (m["time"] <= m["outtime"] + 48 * HOUR)
-    m = m[inwin | m["icustay_id"].map(only).to_numpy()]
-    return m[["icustay_id", "time"]]
+    only_ids = set(s.loc[n_per_adm == 1, "icustay_id"])
+    only = m[~m["_row"].isin(win["_row"]) & m["icustay_id"].isin(only_ids)]
+    keep = [c for c in events.columns if c not in ("icustay_id", "hadm_id")]
+    out = pd.concat([direct[["icustay_id", *keep]], win[["icustay_id", *keep]],
+                     only[["icustay_id", *keep]]], ignore_index=True)
+    return out.astype({"icustay_id": "int64"})
 
 
-def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
-    """Onset of suspected infection per ICU stay (icustay_id -> timestamp).
+def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest"
+                        ) -> pd.DataFrame:
+    """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
-    Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE.
-    Cultures: MICROBIOLOGYEVENTS rows, time = CHARTTIME, else CHARTDATE.
+    Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
+    PRESCRIPTIONS.ICUSTAY_ID when given. Cultures: MICROBIOLOGYEVENTS rows (time =
+    CHARTTIME, else CHARTDATE) and CHARTEVENTS rows of the culture items of cultures.csv
+    (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``
+    (``event_stay``: the rule when several stays of the admission qualify).
     Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
     decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
-    culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def).
+    culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def). An onset
+    outside [INTIME - 48 h, OUTTIME + 48 h] is dropped (AI-Clinician keeps onsets only in
+    that window; an admission's only stay can otherwise receive events from any time): such
+    stays come back with ``in_window`` False.
+
+    Returns a frame indexed by icustay_id: onset, onset_source ('antibiotic' | 'culture'),
+    antibiotic_time, culture_time, in_window.
     """
     ab = data_table("antibiotics.csv")
     inc = ab.loc[ab["kind"] == "name_include", "pattern"].str.lower().tolist()
@@ -122,19 +181,29 @@ def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
     con.register("abx_exc", pd.DataFrame({"p": exc}))
     con.register("abx_routes", pd.DataFrame({"r": routes}))
     abx = con.execute(f"""
-        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, {_ts('STARTDATE')} AS time
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
+               {_ts('STARTDATE')} AS time
         FROM PRESCRIPTIONS pr
         WHERE EXISTS (SELECT 1 FROM abx_inc WHERE contains(lower(pr.DRUG), abx_inc.p))
           AND NOT EXISTS (SELECT 1 FROM abx_exc WHERE contains(lower(pr.DRUG), abx_exc.p))
           AND upper(trim(coalesce(pr.ROUTE, ''))) NOT IN (SELECT r FROM abx_routes)
           AND HADM_ID IS NOT NULL AND STARTDATE IS NOT NULL""").df()
-    cult = con.execute(f"""
-        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id,
+    micro = con.execute(f"""
+        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, CAST(NULL AS BIGINT) AS icustay_id,
                coalesce({_ts('CHARTTIME')}, {_ts('CHARTDATE')}) AS time
-        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df().dropna()
-    a = _assign_to_stays(abx.dropna(), stays).drop_duplicates()
-    c = _assign_to_stays(cult, stays).drop_duplicates()
-    onset = {}
+        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df()
+    con.register("cult_items", data_table("cultures.csv")[["itemid"]].astype("int64"))
+    chart = con.execute(f"""
+        SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
+               {_ts('CHARTTIME')} AS time
+        FROM CHARTEVENTS
+        WHERE TRY_CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM cult_items)""").df()
+    cult = pd.concat([micro, chart], ignore_index=True)
+    cult = cult[cult["time"].notna() & (cult["hadm_id"].notna() | cult["icustay_id"].notna())]
+    abx = abx[abx["time"].notna()]
+    a = _assign_to_stays(abx, stays, event_stay).drop_duplicates()
+    c = _assign_to_stays(cult, stays, event_stay).drop_duplicates()
+    rows = {}
     cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
     for sid, g in a.groupby("icustay_id"):
         cs = cgroups.get(sid)
@@ -145,23 +214,53 @@ def suspected_infection(con, stays: pd.DataFrame) -> pd.Series:
             k = int(np.argmin(d))  # nearest culture (first one on ties, as MATLAB's min)
             gap_h = d[k] / np.timedelta64(1, "h")
             if gap_h <= 24 and t_ab <= cs[k]:
-                onset[sid] = pd.Timestamp(t_ab)
+                rows[sid] = (pd.Timestamp(t_ab), "antibiotic", t_ab, cs[k])
                 break
             if gap_h <= 72 and t_ab >= cs[k]:
-                onset[sid] = pd.Timestamp(cs[k])
+                rows[sid] = (pd.Timestamp(cs[k]), "culture", t_ab, cs[k])
                 break
-    return pd.Series(onset, dtype="datetime64[ns]", name="onset")
+    out = pd.DataFrame.from_dict(rows, orient="index",
+                                 columns=["onset", "onset_source", "antibiotic_time",
+                                          "culture_time"])
+    out.index = out.index.astype("int64")
+    out.index.name = "icustay_id"
+    for col in ("onset", "antibiotic_time", "culture_time"):
+        out[col] = pd.to_datetime(out[col])
+    st = stays.reindex(out.index)
+    out["in_window"] = ((out["onset"] >= st["intime"] - ONSET_WINDOW)
+                        & (out["onset"] <= st["outtime"] + ONSET_WINDOW)).to_numpy()
+    return out.sort_index()
 
 
-def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) -> pd.DataFrame:
+# Verbal GCS charted as "intubated" (CareVue 723 '1.0 ET/Trach', MetaVision 223900
+# 'No Response-ETT'): the verbal response cannot be assessed, so the charted 1 is not a
+# measured verbal score (Teasdale & Jennett 1974; the MIMIC Code Repository's GCS concept
+# treats such charting as not assessable). gcs_intubated = "not_assessable" drops the GCS
+# total charted at that instant (CNS SOFA then has no value there); "verbal_1" keeps it.
+INTUBATED_VERBAL = ((723, "%ET/Trach%"), (223900, "No Response-ETT"))
+MEASURED_DIASTOLIC = (220051, 220180)  # MetaVision ABPd / NBPd: bp_items = "measured" only
+# GCS from RASS where no GCS is charted (AI-Clinician, after Wesley et al., JAMA 2003):
+# RASS >= 0 -> 15, -1 -> 14, -2 -> 12, -3 -> 11, -4 -> 6, -5 -> 3
+RASS_TO_GCS = {0: 15.0, -1: 14.0, -2: 12.0, -3: 11.0, -4: 6.0, -5: 3.0}
+
+
+def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
+            opts: Mimic3Options | None = None) -> pd.DataFrame:
     """Charted and lab values of ``features`` for ``stays`` between lo and hi (per stay),
-    converted to contract units, outliers deleted. Filtering happens in DuckDB."""
+    converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
+    only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). ``opts``: the item
+    switches (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
+    opts = opts or Mimic3Options()
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
+    if opts.bp_items == "ai_clinician":
+        items = items[~items["itemid"].isin(MEASURED_DIASTOLIC)]
     win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
                         "hadm_id": stays["hadm_id"].to_numpy(),
                         "lo": lo.reindex(stays.index).to_numpy(),
-                        "hi": hi.reindex(stays.index).to_numpy()})
+                        "hi": hi.reindex(stays.index).to_numpy(),
+                        "lab_lo": (stays["intime"] - LAB_WINDOW).to_numpy(),
+                        "lab_hi": (stays["outtime"] + LAB_WINDOW).to_numpy()})
     con.register("win", win)
     con.register("items_chart", items.loc[items["source"] == "chartevents", ["itemid"]])
     con.register("items_lab", items.loc[items["source"] == "labevents", ["itemid"]])
@@ -177,9 +276,36 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) ->
                'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value
         FROM LABEVENTS l JOIN win w ON CAST(l.HADM_ID AS BIGINT) = w.hadm_id
         WHERE CAST(l.ITEMID AS BIGINT) IN (SELECT itemid FROM items_lab)
-          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lab_lo AND w.lab_hi""").df()
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
+    gcs = ev["feature"].isin(["sofa_gcs", "sofa_gcs_component"])
+    if gcs.any() and opts.gcs_intubated == "not_assessable":
+        cond = " OR ".join(f"(CAST(c.ITEMID AS BIGINT) = {i} AND c.VALUE LIKE '{v}')"
+                           for i, v in INTUBATED_VERBAL)
+        ett = con.execute(f"""
+            SELECT DISTINCT w.icustay_id, {_ts('c.CHARTTIME')} AS time
+            FROM CHARTEVENTS c JOIN win w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+            WHERE ({cond}) AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+        key = pd.MultiIndex.from_frame(ev[["icustay_id", "time"]])
+        hit = key.isin(pd.MultiIndex.from_frame(ett[["icustay_id", "time"]])) if len(ett) else (
+            np.zeros(len(ev), bool))
+        ev = ev[~(gcs.to_numpy() & hit)].reset_index(drop=True)
+    if opts.sofa == "ai_clinician":
+        # AI-Clinician: CareVue GCS total only; RASS-estimated GCS where none is charted
+        ev = ev[ev["feature"] != "sofa_gcs_component"]
+        rass = ev[ev["feature"] == "sofa_rass"]
+        ev = ev[ev["feature"] != "sofa_rass"]
+        if len(rass):
+            est = rass["value"].round().clip(upper=0).map(RASS_TO_GCS)
+            rass = rass.assign(feature="sofa_gcs", value=est.to_numpy())
+            have = pd.MultiIndex.from_frame(ev.loc[ev["feature"] == "sofa_gcs",
+                                                   ["icustay_id", "time"]])
+            rass = rass[~pd.MultiIndex.from_frame(rass[["icustay_id", "time"]]).isin(have)]
+            ev = pd.concat([ev, rass.dropna(subset=["value"])], ignore_index=True)
+    else:
+        ev = ev[ev["feature"] != "sofa_rass"]
     # GCS (MetaVision): eye + verbal + motor charted together -> total
     comp = ev[ev["feature"] == "sofa_gcs_component"]
     if len(comp):
@@ -192,8 +318,11 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features) ->
     return ev
 
 
-def _inputs(con, ids, lo: pd.Series, hi: pd.Series) -> tuple[pd.DataFrame, ...]:
-    """Fluid and vasopressor rows (MetaVision, CareVue) of stays ``ids`` overlapping [lo, hi]."""
+def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
+            ) -> tuple[pd.DataFrame, ...]:
+    """Fluid and vasopressor rows (MetaVision, CareVue) of stays ``ids`` overlapping [lo, hi].
+    MetaVision 'Rewritten' rows are dropped (``rewritten="exclude"``) or, as AI-Clinician,
+    dropped for vasopressors only (``"ai_clinician"``)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(), "hi": hi.reindex(ids).to_numpy()})
     con.register("win_in", win)
@@ -204,29 +333,36 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series) -> tuple[pd.DataFrame, ...]:
     mv_sel = f"""SELECT w.icustay_id, CAST(m.ITEMID AS BIGINT) AS itemid,
                {_ts('m.STARTTIME')} AS starttime, {_ts('m.ENDTIME')} AS endtime,
                TRY_CAST(m.AMOUNT AS DOUBLE) AS amount, TRY_CAST(m.RATE AS DOUBLE) AS rate,
-               m.RATEUOM AS rateuom
+               m.RATEUOM AS rateuom, coalesce(m.STATUSDESCRIPTION, '') AS status
         FROM INPUTEVENTS_MV m JOIN win_in w ON CAST(m.ICUSTAY_ID AS BIGINT) = w.icustay_id
-        WHERE coalesce(m.STATUSDESCRIPTION, '') <> 'Rewritten'
-          AND {_ts('m.STARTTIME')} <= w.hi AND {_ts('m.ENDTIME')} >= w.lo"""
+        WHERE {_ts('m.STARTTIME')} <= w.hi AND {_ts('m.ENDTIME')} >= w.lo"""
     cv_sel = f"""SELECT w.icustay_id, CAST(c.ITEMID AS BIGINT) AS itemid,
                {_ts('c.CHARTTIME')} AS charttime, TRY_CAST(c.AMOUNT AS DOUBLE) AS amount,
                TRY_CAST(c.RATE AS DOUBLE) AS rate, c.RATEUOM AS rateuom
         FROM INPUTEVENTS_CV c JOIN win_in w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
         WHERE {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi"""
-    def q(sel: str, items: str, notnull: str) -> pd.DataFrame:
+    def q(sel: str, items: str, notnull: str, cond: str = "TRUE") -> pd.DataFrame:
         return con.execute(f"SELECT * FROM ({sel}) WHERE itemid IN (SELECT itemid FROM {items})"
-                           f" AND {notnull} IS NOT NULL").df()
-    mv_f, cv_f = q(mv_sel, "fl_items", "amount"), q(cv_sel, "fl_items", "amount")
-    mv_v, cv_v = q(mv_sel, "va_items", "rate"), q(cv_sel, "va_items", "rate")
+                           f" AND {notnull} IS NOT NULL AND {cond}").df()
+    not_rewritten = "status <> 'Rewritten'"
+    mv_f = q(mv_sel, "fl_items", "amount",
+             "TRUE" if rewritten == "ai_clinician" else not_rewritten)
+    mv_v = q(mv_sel, "va_items", "rate", not_rewritten)
+    cv_f, cv_v = q(cv_sel, "fl_items", "amount"), q(cv_sel, "va_items", "rate")
     return mv_f, cv_f, mv_v, cv_v
 
 
-def sofa_score(b: pd.DataFrame) -> pd.Series:
-    """SOFA (Vincent et al. 1996) per row from block means, AI-Clinician's thresholds.
+SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
+
+
+def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
+    """SOFA points per organ (Vincent et al. 1996) per row from block means, AI-Clinician's
+    thresholds; columns ``SOFA_ORGANS``.
 
     Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
     sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max), sofa_gcs,
-    sofa_creatinine (mg/dL). Urine output (renal) and ventilation are not used.
+    sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
+    charted, no points). Ventilation is not used.
     """
     def pts(conds):
         out = np.zeros(len(b))
@@ -235,69 +371,142 @@ def sofa_score(b: pd.DataFrame) -> pd.Series:
         return out
     pf, plt, bil = b["pf"], b["sofa_platelets"], b["sofa_bilirubin"]
     mapp, vaso, gcs, cr = b["MeanBP"], b["vaso"].fillna(0), b["sofa_gcs"], b["sofa_creatinine"]
-    resp = pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100])
-    coag = pts([plt > 150, plt < 150, plt < 100, plt < 50, plt < 20])
-    liver = pts([bil < 1.2, bil >= 1.2, bil >= 2, bil >= 6, bil > 12])
-    cardio = pts([mapp >= 70, mapp < 70, mapp < 65, (vaso > 0) & (vaso <= 0.1), vaso > 0.1])
-    cns = pts([gcs > 14, gcs <= 14, gcs <= 12, gcs <= 9, gcs <= 5])
-    renal = pts([cr < 1.2, cr >= 1.2, cr >= 2, cr >= 3.5, cr > 5])
-    return pd.Series(resp + coag + liver + cardio + cns + renal, index=b.index)
+    uo = b["uo"] if "uo" in b else pd.Series(np.nan, index=b.index)
+    return pd.DataFrame({
+        "respiration": pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100]),
+        "coagulation": pts([plt > 150, plt < 150, plt < 100, plt < 50, plt < 20]),
+        "liver": pts([bil < 1.2, bil >= 1.2, bil >= 2, bil >= 6, bil > 12]),
+        "cardiovascular": pts([mapp >= 70, mapp < 70, mapp < 65, (vaso > 0) & (vaso <= 0.1),
+                               vaso > 0.1]),
+        "cns": pts([gcs > 14, gcs <= 14, gcs <= 12, gcs <= 9, gcs <= 5]),
+        # urine output of the 4 h block (sofa=ai_clinician only): < 84 mL (500 mL/day) 3,
+        # < 34 mL (200 mL/day) 4 points, AI-Clinician's thresholds
+        "renal": pts([cr < 1.2, cr >= 1.2, cr >= 2, (cr >= 3.5) | (uo < 84), (cr > 5) | (uo < 34)]),
+    }, index=b.index)
 
 
-def max_sofa(con, stays: pd.DataFrame, onset: pd.Series) -> pd.Series:
-    """Max over 4 h blocks of [onset - 48 h, onset + 24 h) of ``sofa_score`` (block means,
-    no imputation; vasopressor = max NE-equivalent rate running in the block)."""
-    ids = onset.index
-    lo, hi = onset - 48 * HOUR, onset + 24 * HOUR
-    feats = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
-             "sofa_gcs_component", "sofa_creatinine")
-    ev = _events(con, stays.loc[ids], lo, hi, feats)
-    start = lo.rename("start")
+def sofa_score(b: pd.DataFrame) -> pd.Series:
+    """Total SOFA per row: the sum of ``sofa_components``."""
+    return sofa_components(b).sum(axis=1)
+
+
+SOFA_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
+                 "sofa_gcs_component", "sofa_rass", "sofa_creatinine")
+BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
+                  "sofa_creatinine")
+
+
+def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
+    """Urine output (mL) per 4 h block of [lo, lo + 4 n_blocks h): the sum of OUTPUTEVENTS
+    rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly);
+    blocks without a row are missing (AI-Clinician's nansum would make them 0 mL, i.e.
+    4 renal points for any block where no urine was charted)."""
+    win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
+                        "lo": lo.reindex(ids).to_numpy(),
+                        "hi": (lo + 4 * n_blocks * HOUR).reindex(ids).to_numpy()})
+    con.register("win_uo", win)
+    con.register("uo_items", data_table("urine.csv")[["itemid"]].astype("int64"))
+    u = con.execute(f"""
+        SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time, TRY_CAST(o.VALUE AS DOUBLE) AS value
+        FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE CAST(o.ITEMID AS BIGINT) IN (SELECT itemid FROM uo_items)
+          AND {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi""").df()
+    u = u.dropna()
+    blk = ((u["time"].to_numpy() - lo.reindex(u["icustay_id"]).to_numpy()) // (4 * HOUR))
+    return u.assign(blk=blk.astype("int64")).groupby(["icustay_id", "blk"])["value"].sum()
+
+
+def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
+               carry: bool = False, opts: Mimic3Options | None = None) -> pd.DataFrame:
+    """SOFA points per organ in 4 h blocks [start + 4 b h, start + 4 (b + 1) h),
+    b = 0..n_blocks - 1, for the stays of ``start`` (index icustay_id).
+
+    Block means of the charted / lab values (no imputation); vasopressor = max
+    NE-equivalent rate running in the block. ``carry``: a component missing in a block takes
+    the stay's last earlier block value (sample-and-hold over blocks, as AI-Clinician's
+    SOFA is computed after sample-and-hold). ``opts.sofa``: which GCS items, and whether
+    the block's urine output counts (``_urine``). Returns a frame indexed by
+    (icustay_id, blk) with ``SOFA_ORGANS``, ``sofa`` and ``vaso``."""
+    opts = opts or Mimic3Options()
+    ids = start.index
+    lo, hi = start, start + 4 * n_blocks * HOUR
+    ev = _events(con, stays.loc[ids], lo, hi, SOFA_FEATURES, opts)
     ev = ev.assign(blk=((ev["time"].to_numpy() - start.reindex(ev["icustay_id"]).to_numpy())
                         // (4 * HOUR)).astype("int64"))
+    ev = ev[(ev["blk"] >= 0) & (ev["blk"] < n_blocks)]
     b = ev.pivot_table(index=["icustay_id", "blk"], columns="feature", values="value",
                        aggfunc="mean")
-    idx = pd.MultiIndex.from_product([ids, range(18)], names=["icustay_id", "blk"])
+    idx = pd.MultiIndex.from_product([ids, range(n_blocks)], names=["icustay_id", "blk"])
     b = b.reindex(idx)
-    for c in feats:
+    for c in BLOCK_FEATURES:
         if c not in b:
             b[c] = np.nan
+    if opts.sofa == "ai_clinician":
+        b["uo"] = _urine(con, ids, lo, n_blocks).reindex(idx).to_numpy()
+    if carry:
+        b = b.groupby(level=0).ffill()
     b["pf"] = b["paO2"] / (b["sofa_fio2"] / 100)
-    # vasopressor: max NE-equivalent rate running in each 4 h block
-    _, _, mv_v, cv_v = _inputs(con, ids, lo, hi)
-    vaso = doses.hourly_vasopressor(lo, mv_v, cv_v, 17, width=4 * HOUR)
+    _, _, mv_v, cv_v = _inputs(con, ids, lo, hi, opts.rewritten)
+    vaso = doses.hourly_vasopressor(lo, mv_v, cv_v, n_blocks - 1, width=4 * HOUR)
     vaso.index.names = idx.names
     b["vaso"] = vaso.reindex(idx).to_numpy()
-    return sofa_score(b).groupby(level=0).max().rename("max_sofa")
+    out = sofa_components(b)
+    out["sofa"] = out[list(SOFA_ORGANS)].sum(axis=1)
+    out["vaso"] = b["vaso"].to_numpy()
+    return out
 
 
-def withdrawn(stays: pd.DataFrame, mv_v: pd.DataFrame, cv_v: pd.DataFrame) -> pd.Index:
-    """Stays flagged as treatment withdrawal (AI-Clinician's 'early deaths from possible
-    withdrawals', adapted to whole ICU stays): died within 90 days of ICU admission,
-    ICU stay < 80 h (AI-Clinician: < 20 blocks of 4 h), maximum NE-equivalent vasopressor
-    rate during the stay > 0.3 ug/kg/min, and no vasopressor in the last 4 h of the stay.
-    (AI-Clinician also requires the last SOFA >= half the maximum SOFA; not used here.)
+def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
+             opts: Mimic3Options | None = None) -> pd.DataFrame:
+    """Max over the eighteen 4 h blocks of [onset - 48 h, onset + 24 h) of the block SOFA
+    (``block_sofa``, no carrying). Returns, per stay, ``max_sofa`` and ``sofa_organs``: the
+    organs scoring >= 1 point in the first block reaching the maximum (';'-joined)."""
+    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, opts=opts)
+    first = blocks["sofa"].groupby(level=0).idxmax()  # first block with the maximum
+    best = blocks.loc[first.to_numpy()]
+    organs = best[list(SOFA_ORGANS)].apply(
+        lambda r: ";".join(f"{o}={int(r[o])}" for o in SOFA_ORGANS if r[o] > 0), axis=1)
+    return pd.DataFrame({"max_sofa": best["sofa"].to_numpy(),
+                         "sofa_organs": organs.to_numpy()},
+                        index=pd.Index(best.index.get_level_values(0), name="icustay_id"))
+
+
+def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd.Index:
+    """Stays flagged as treatment withdrawal, AI-Clinician's 'exclude early deaths from
+    possible withdrawals' (source and parameters: data/mimic3/withdrawal.csv) on 4 h blocks
+    of the whole ICU stay from INTIME: all of
+
+    - died within 90 days of ICU admission (mortality_90d);
+    - the stay has fewer than 20 blocks of 4 h (OUTTIME - INTIME < 80 h);
+    - the maximum block vasopressor (max NE-equivalent rate, ug/kg/min) > 0.3;
+    - no vasopressor in the last block (max_dose_vaso == 0);
+    - SOFA of the last block >= half the maximum block SOFA over the stay.
+
+    AI-Clinician's record is [onset - 24 h, onset + 48 h] in 4 h blocks of sample-and-held,
+    imputed values; here it is the ICU stay, and SOFA components are carried forward over
+    blocks (``block_sofa(carry=True)``), the nearest equivalent without imputation.
     """
+    par = data_table("withdrawal.csv").set_index("parameter")["value"].astype(float)
+    width = par["block_hours"] * HOUR
+    max_blocks = int(par["max_blocks"])
     s = stays
-    died90 = s["dod"].notna() & ((s["dod"] - s["intime"]) <= pd.Timedelta(days=90))
-    short = (s["outtime"] - s["intime"]) < 80 * HOUR
-    ne = []
-    if len(mv_v):
-        ne.append(mv_v.assign(ne=doses.norepinephrine_equivalent(mv_v, "mv"),
-                              last=mv_v["endtime"])[["icustay_id", "ne", "last"]])
-    if len(cv_v):
-        ne.append(cv_v.assign(ne=doses.norepinephrine_equivalent(cv_v, "cv"),
-                              last=cv_v["charttime"])[["icustay_id", "ne", "last"]])
-    if not ne:
+    died = s["dod"].notna() & ((s["dod"] - s["intime"])
+                               <= pd.Timedelta(days=float(par["died_within_days"])))
+    n_blk = np.ceil((s["outtime"] - s["intime"]) / width).clip(lower=1)
+    cand = s.index[(died & (n_blk < max_blocks)).to_numpy()]
+    if not len(cand):
         return pd.Index([], dtype="int64")
-    v = pd.concat(ne).dropna(subset=["ne"])
-    mx = v.groupby("icustay_id")["ne"].max()
-    late = v[(v["ne"] > 0)
-             & (v["last"] >= s["outtime"].reindex(v["icustay_id"]).to_numpy() - 4 * HOUR)]
-    on_at_end = pd.Index(late["icustay_id"].unique())
-    cand = s.index[died90 & short]
-    cand = cand[(mx.reindex(cand).fillna(0) > 0.3).to_numpy()]
-    return cand.difference(on_at_end)
+    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], max_blocks - 1, carry=True,
+                        opts=opts)
+    last = n_blk.loc[cand].astype("int64") - 1
+    keep = blocks.index.get_level_values("blk").to_numpy() <= last.reindex(
+        blocks.index.get_level_values(0)).to_numpy()
+    blocks = blocks[keep]
+    mx = blocks.groupby(level=0)[["sofa", "vaso"]].max()
+    lastrow = blocks.groupby(level=0).tail(1).droplevel(1).reindex(mx.index)
+    flag = ((mx["vaso"] > par["max_vaso_gt"]) & (lastrow["vaso"] == par["last_vaso_eq"])
+            & (lastrow["sofa"] >= par["last_sofa_fraction"] * mx["sofa"]))
+    return pd.Index(mx.index[flag.to_numpy()], dtype="int64")
 
 
 ANCHORS = ("intime", "first_vitals")
@@ -336,115 +545,154 @@ def realign(frame: pd.DataFrame, offset_h: pd.Series, t_max: int) -> pd.DataFram
     return out.sort_index()
 
 
+STEPS = ("all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortality_documented",
+         "intake_documented", "not_withdrawn", "anchor", "stay_covers_window",
+         "weight_documented", "vitals_complete", "imputable")
+
+
 def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
-                   anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H
-                   ) -> Mimic3Cohort:
+                   anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H,
+                   options: Mimic3Options | None = None) -> Mimic3Cohort:
     """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
 
     Trajectory row (stay, t): features over hour [T0 + t h, T0 + (t+1) h) (block means,
-    sample-and-hold, labs still missing imputed by 1-NN), iv_fluid (mL/h) and vasopressor
-    (ug/kg/min) given during that hour, where the anchor T0 is
+    sample-and-hold from before the hour, weight and labs still missing imputed by 1-NN from
+    other stays' rows of hours <= t), iv_fluid (mL/h) and vasopressor (ug/kg/min) given
+    during that hour, where the anchor T0 is
 
     - ``anchor="intime"``: ICU admission (INTIME), the paper's "first ICU hours";
     - ``anchor="first_vitals"``: INTIME + k h for the first whole hour k < ``anchor_window_h``
       whose block holds every vital (``first_complete_vitals``); stays without such a block
       are excluded at the CONSORT step ``anchor``.
 
-    See the module docstring for the steps and docs/mimic3.md for the choice of anchor.
+    ``options``: the switches of ``options.Mimic3Options`` (project defaults). Every
+    criterion is evaluated for every stay where it is defined (``stays`` of the result, one
+    row per ICU stay); the CONSORT chain applies them in the order of ``STEPS``. See the
+    module docstring and docs/mimic3.md.
     """
+    opts = options or Mimic3Options()
     if anchor not in ANCHORS:
         raise ContractError(f"mimic3 source: anchor must be one of {ANCHORS}, got {anchor!r}")
     if int(anchor_window_h) < 1:
         raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
     folder = Path(folder)
-    con = connect(folder, threads=threads)
-    c = _Consort()
-    stays = _stays(con)
-    c.add("all_icu_stays", "ICU stays in ICUSTAYS", stays.index)
-    stays = stays[stays["age"] >= 18]
-    c.add("adult", "age >= 18 at ICU admission", stays.index)
-    onset = suspected_infection(con, stays)
-    stays = stays.loc[stays.index.intersection(onset.index)]
-    onset = onset.reindex(stays.index)
-    c.add("suspected_infection", "antibiotic + culture (culture <= 24 h after antibiotic, "
-          "or antibiotic <= 72 h after culture)", stays.index)
-    if len(stays):
-        sofa = max_sofa(con, stays, onset)
-        stays = stays.loc[sofa.index[sofa >= 2]]
-    c.add("sofa_ge_2", "max SOFA >= 2 in [onset - 48 h, onset + 24 h]", stays.index)
-    stays = stays[stays["hospital_expire_flag"].isin([0, 1])]
-    c.add("mortality_documented", "hospital mortality documented", stays.index)
-    # intake documented: any input event during the stay
-    con.register("ids_tmp", pd.DataFrame({"icustay_id": stays.index.to_numpy("int64")}))
-    documented = set(con.execute("""
-        SELECT DISTINCT CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
-        WHERE CAST(ICUSTAY_ID AS BIGINT) IN (SELECT icustay_id FROM ids_tmp)
-        UNION SELECT DISTINCT CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_CV
-        WHERE CAST(ICUSTAY_ID AS BIGINT) IN (SELECT icustay_id FROM ids_tmp)""").df().iloc[:, 0])
-    stays = stays[stays.index.isin(documented)]
-    c.add("intake_documented", "IV fluid / vasopressor charting present (INPUTEVENTS_MV/CV)",
-          stays.index)
-    _, _, mv_all, cv_all = _inputs(con, stays.index, stays["intime"], stays["outtime"])
-    stays = stays.drop(index=withdrawn(stays, mv_all, cv_all))
-    c.add("not_withdrawn", "treatment withdrawal excluded (AI-Clinician rule, adapted)",
-          stays.index)
+    optional = ("OUTPUTEVENTS",) if opts.sofa == "ai_clinician" else ()
+    con = connect(folder, threads=threads, optional=optional)
+    try:
+        return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+    except duckdb.Error as exc:  # damage deep in a file: name it, no traceback
+        raise diagnose(folder, (*REQUIRED_COLUMNS, *optional), exc) from None
+    finally:
+        con.close()
 
-    # hourly blocks k = 0..n_blk - 1 from INTIME: enough to find the anchor and hold t_max
-    # hours after it (intime: the anchor is block 0)
-    window = int(anchor_window_h) if anchor == "first_vitals" else 1
+
+def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
+             opts: Mimic3Options) -> Mimic3Cohort:
+    allst = _stays(con)
+    ids_all = allst.index
+    crit = pd.DataFrame(index=ids_all)  # True = met, False = failed, NA = not evaluated
+    crit["adult"] = (allst["age"] >= 18).to_numpy()
+    inf = suspected_infection(con, allst, opts.event_stay)
+    crit["suspected_infection"] = inf["in_window"].reindex(ids_all).fillna(False).astype(bool)
+    has_onset = inf.index[inf["in_window"].to_numpy()]
+    sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
+            if len(has_onset) else pd.DataFrame(columns=["max_sofa", "sofa_organs"]))
+    crit["sofa_ge_2"] = (sofa["max_sofa"] >= 2).reindex(ids_all).astype("boolean")
+    crit["mortality_documented"] = allst["hospital_expire_flag"].isin([0, 1]).to_numpy()
+    documented = con.execute("""
+        SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
+        UNION SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_CV""").df()
+    documented = set(documented.iloc[:, 0])
+    crit["intake_documented"] = ids_all.isin(list(documented))
+    crit["not_withdrawn"] = ~ids_all.isin(withdrawn(con, allst, opts))
+
+    # hourly blocks k = 0..n_blk - 1 from INTIME for every stay: enough to find the anchor
+    # and hold t_max hours after it (intime: the anchor is block 0)
+    window = window_h if anchor == "first_vitals" else 1
     n_blk = window + t_max
-    intime = stays["intime"]
+    intime = allst["intime"]
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
-    lo, hi = intime - max_hold * HOUR, intime + n_blk * HOUR
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
-    ev = _events(con, stays, lo, hi, feats) if len(stays) else pd.DataFrame(
-        columns=["icustay_id", "time", "feature", "value"])
+    ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts)
     raw = hourly.block_means(ev, intime, feats, n_blk - 1)
-    held = hourly.sample_and_hold(hourly.complete_bp(raw), ev, intime)
+    held = hourly.sample_and_hold(hourly.complete_bp(raw), ev, intime, how=opts.hold)
     if anchor == "first_vitals":
         offset = first_complete_vitals(held, window)
-        c.add("anchor", f"t = 0 at the first hour with every vital, within the first {window} "
-              "ICU hours", offset.index)
+        anchor_desc = (f"t = 0 at the first hour with every vital, within the first {window} "
+                       "ICU hours")
     else:
-        offset = pd.Series(0, index=stays.index, dtype="int64", name="anchor_h")
-        c.add("anchor", "t = 0 at ICU admission (INTIME)", offset.index)
-    stays = stays.loc[offset.index]
-    t0 = stays["intime"] + offset.reindex(stays.index).to_numpy() * HOUR
-    stays = stays[stays["outtime"] >= t0 + (t_max + 1) * HOUR]
-    c.add("stay_covers_window", f"ICU stay lasts at least {t_max + 1} h after t = 0",
-          stays.index)
-    offset = offset.reindex(stays.index)
-    t0 = t0.reindex(stays.index)
+        offset = pd.Series(0, index=ids_all, dtype="int64", name="anchor_h")
+        anchor_desc = "t = 0 at ICU admission (INTIME)"
+    crit["anchor"] = ids_all.isin(offset.index)
+    t0_all = intime.loc[offset.index] + offset.to_numpy() * HOUR
+    covers = allst.loc[offset.index, "outtime"] >= t0_all + (t_max + 1) * HOUR
+    crit["stay_covers_window"] = covers.reindex(ids_all).astype("boolean")
     raw = realign(raw, offset, t_max)
     held = realign(held, offset, t_max)
+    full = held.index.get_level_values("icustay_id").value_counts()
+    full = full.index[full == t_max + 1]  # anchored stays with every hour 0..t_max (blocks)
+    # weight: charted in hour t or held (72 h) from before it, never from a later charting;
+    # hours still without one are imputed from other stays (weight_missing="impute", the
+    # stay needs a weight charted in [INTIME - 72 h, OUTTIME]: documented, a selection
+    # criterion, never a value) or the stay is excluded ("exclude")
+    causal_w = held["weight"].notna().groupby(level=0).all()
+    if opts.weight_missing == "exclude":
+        wd = causal_w
+        w_desc = f"weight charted at or before the end of every hour t = 0..{t_max} (held 72 h)"
+    else:
+        wev = _events(con, allst, intime - 72 * HOUR, allst["outtime"], ("weight",), opts)
+        wd = pd.Series(ids_all.isin(wev["icustay_id"].unique()), index=ids_all)
+        w_desc = ("a weight charted in [INTIME - 72 h, OUTTIME]; hours without one charted "
+                  "at or before their end are imputed from other stays")
+    crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
+    vit = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
+    crit["vitals_complete"] = vit.reindex(full).reindex(ids_all).astype("boolean")
 
-    # weight: if no weight within 72 h before an hour, the first weight charted in the stay
-    if len(stays):
-        wstay = _events(con, stays, stays["intime"], stays["outtime"], ("weight",))
-        # the first charting instant's weights, averaged (kg and lb are often charted together)
-        first_t = wstay.groupby("icustay_id")["time"].transform("min")
-        first_w = wstay[wstay["time"] == first_t].groupby("icustay_id")["value"].mean()
-        keys = held.index.get_level_values("icustay_id")
-        held["weight"] = held["weight"].fillna(pd.Series(first_w.reindex(keys).to_numpy(),
-                                                         index=held.index))
-    has_w = held["weight"].notna().groupby(level=0).all()
-    stays = stays.loc[has_w.index[has_w]]
-    c.add("weight_documented", "weight documented for the stay", stays.index)
-    vit_ok = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
-    stays = stays.loc[vit_ok.index[vit_ok].intersection(stays.index)]
-    c.add("vitals_complete", f"every vital present in each hour t = 0..{t_max} "
-          "(after sample-and-hold; the paper's change)", stays.index)
+    c = _Consort()
+    desc = {
+        "all_icu_stays": "ICU stays in ICUSTAYS",
+        "adult": "age >= 18 at ICU admission",
+        "suspected_infection": "antibiotic + culture (culture <= 24 h after antibiotic, or "
+        "antibiotic <= 72 h after culture), onset in [INTIME - 48 h, OUTTIME + 48 h]",
+        "sofa_ge_2": "max SOFA >= 2 in [onset - 48 h, onset + 24 h]",
+        "mortality_documented": "hospital mortality documented",
+        "intake_documented": "IV fluid / vasopressor charting present (INPUTEVENTS_MV/CV)",
+        "not_withdrawn": "treatment withdrawal excluded (AI-Clinician's rule in full, on 4 h "
+        "blocks of the ICU stay)",
+        "anchor": anchor_desc,
+        "stay_covers_window": f"ICU stay lasts at least {t_max + 1} h after t = 0",
+        "weight_documented": w_desc,
+        "vitals_complete": f"every vital present in each hour t = 0..{t_max} (after "
+        "sample-and-hold; the paper's change)",
+    }
+    ids = ids_all
+    c.add("all_icu_stays", desc["all_icu_stays"], ids)
+    for step in STEPS[1:-1]:
+        ids = ids[crit.loc[ids, step].fillna(False).to_numpy(bool)]
+        c.add(step, desc[step], ids)
 
-    ids = stays.index
-    held = held.loc[ids]
-    raw = raw.loc[ids]
-    t0 = t0.loc[ids]
-    after_hold_missing = held[list(hourly.LABS)].isna()
+    stays = allst.loc[ids]
+    held, raw = held.loc[ids], raw.loc[ids]
+    t0 = t0_all.reindex(ids)
+    offset = offset.reindex(ids)
+    after_hold_missing = held[["weight", *hourly.LABS]].isna()
+    n_w = int(after_hold_missing["weight"].groupby(level=0).any().sum())
     if len(ids):
-        # labs still missing after sample-and-hold: 1-NN over all non-demographic features
+        # weight / labs still missing after sample-and-hold: 1-NN over all non-demographic
+        # features, donors from other stays at the same or an earlier hour only (a donor
+        # from the stay itself would usually be its own future)
         x = held[list(schema.FEATURES[2:])].to_numpy(float)
-        imp = hourly.knn_impute(x)
+        imp = hourly.knn_impute(x, groups=held.index.get_level_values("icustay_id").to_numpy(),
+                                times=held.index.get_level_values("t").to_numpy())
         held[list(schema.FEATURES[2:])] = imp
+    done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
+    crit["imputable"] = done.reindex(ids_all).astype("boolean")
+    ids = ids[done.reindex(ids).to_numpy(bool)]
+    c.add("imputable", "weight and every lab of every hour observed, held or imputed from "
+          f"another stay's same or earlier hour (weight imputed in {n_w} stays)", ids)
+    stays, held, raw, t0 = stays.loc[ids], held.loc[ids], raw.loc[ids], t0.loc[ids]
+    offset = offset.loc[ids]
+    after_hold_missing = after_hold_missing.loc[ids]
     # missingness report (before sample-and-hold), on the final cohort
     miss_rows = []
     n = len(ids)
@@ -465,7 +713,7 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     traj["age"] = stays["age"].reindex(traj["icustay_id"]).to_numpy()
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
     # doses on the same anchor: hour t of the doses is [t0 + t h, t0 + (t + 1) h)
-    mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR)
+    mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR, opts.rewritten)
     fl = doses.hourly_fluid(t0, mv_f, cv_f, t_max)
     va = doses.hourly_vasopressor(t0, mv_v, cv_v, t_max)
     key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
@@ -478,14 +726,51 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
                                             t_max=t_max)
     anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
-                            "anchor_h": offset.reindex(ids).to_numpy("int64")})
-    con.close()
+                            "anchor_h": offset.to_numpy("int64")})
+    imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
+    audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing)
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
-                        missingness=missingness, anchors=anchors)
+                        missingness=missingness, anchors=anchors, imputed=imputed,
+                        stays=audit, options=opts.as_dict())
+
+
+def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.DataFrame,
+           t0: pd.Series, in_cohort: pd.Index, imputed: pd.DataFrame) -> pd.DataFrame:
+    """One row per ICU stay: identifiers, onset (time, source, the antibiotic and culture
+    times; also an onset outside the window, flagged), max SOFA and the organs scoring in
+    its block, t0, each criterion (True / False / NA = not evaluated: the SOFA needs an
+    onset, the hourly criteria an anchor, imputable the rest of the cohort), the first
+    failed step, every failed criterion and the number of imputed cells."""
+    a = pd.DataFrame({schema.STAY_ID: allst.index.to_numpy("int64"),
+                      "subject_id": allst["subject_id"].to_numpy(),
+                      "hadm_id": allst["hadm_id"].to_numpy(),
+                      "dbsource": allst["dbsource"].to_numpy(),
+                      "intime": allst["intime"].to_numpy(), "outtime": allst["outtime"].to_numpy(),
+                      "age": allst["age"].round(2).to_numpy()}, index=allst.index)
+    for col in ("onset", "onset_source", "antibiotic_time", "culture_time"):
+        a[col] = inf[col].reindex(allst.index).to_numpy()
+    a["onset_in_window"] = inf["in_window"].reindex(allst.index).astype("boolean").to_numpy()
+    a["max_sofa"] = sofa["max_sofa"].reindex(allst.index).to_numpy()
+    a["sofa_organs"] = sofa["sofa_organs"].reindex(allst.index).to_numpy()
+    a["t0"] = t0.reindex(allst.index).to_numpy()
+    steps = list(STEPS[1:])
+    for st in steps:
+        a[st] = crit[st].astype("boolean").to_numpy()
+    failed = a[steps].eq(False).fillna(False)
+    a["excluded_at"] = [next((st for st in steps if f[st]), "") for _, f in failed.iterrows()]
+    a["reasons"] = [";".join(st for st in steps if f[st]) for _, f in failed.iterrows()]
+    a["in_cohort"] = allst.index.isin(in_cohort)
+    n_imp = imputed.groupby(level=0).sum().sum(axis=1)
+    a["n_imputed_cells"] = n_imp.reindex(allst.index).fillna(0).astype("int64").to_numpy()
+    a.loc[~a["in_cohort"], "n_imputed_cells"] = 0
+    return a.reset_index(drop=True)
 
 
 def main(argv: list[str] | None = None) -> None:
-    """CLI: python -m twinfalsify.sources.mimic3.cohort FOLDER OUTDIR."""
+    """CLI: python -m twinfalsify.sources.mimic3 FOLDER OUTDIR [options]."""
+    from .options import CHOICES, PRESETS, options_from_config
+    from .tables import resolve_mimic3_dir
+
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("folder")
     p.add_argument("outdir")
@@ -493,16 +778,24 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--anchor", choices=ANCHORS, default="first_vitals")
     p.add_argument("--anchor-window-h", type=int, default=ANCHOR_WINDOW_H)
+    p.add_argument("--cohort-variant", choices=list(PRESETS), default="project")
+    for k, v in CHOICES.items():
+        p.add_argument(f"--{k.replace('_', '-')}", choices=v, default=None)
     a = p.parse_args(argv)
-    from .tables import resolve_mimic3_dir
-    res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
-                         anchor=a.anchor, anchor_window_h=a.anchor_window_h)
+    cfg = {"cohort_variant": a.cohort_variant, **{k: getattr(a, k) for k in CHOICES}}
+    try:
+        res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
+                             anchor=a.anchor, anchor_window_h=a.anchor_window_h,
+                             options=options_from_config(cfg))
+    except ContractError as exc:  # bad input: one line naming the file, no traceback
+        raise SystemExit(f"ERROR: {exc}") from None
     out = Path(a.outdir)
     out.mkdir(parents=True, exist_ok=True)
     res.trajectories.to_parquet(out / "trajectories.parquet", index=False)
     res.consort.to_csv(out / "cohort_consort.csv", index=False)
     res.missingness.to_csv(out / "cohort_missingness.csv", index=False)
     res.anchors.to_csv(out / "cohort_anchors.csv", index=False)
+    res.stays.to_csv(out / "cohort_stays.csv", index=False)
     print(res.consort.to_string(index=False))
 
 

@@ -94,28 +94,54 @@ def block_means(ev: pd.DataFrame, intime: pd.Series, features: tuple[str, ...], 
     return wide.reindex(index=idx, columns=list(features))
 
 
+def _within_limits(feature: str, v: pd.Series) -> pd.Series:
+    """True where ``v`` passes every outlier_limits.csv row of ``feature``."""
+    lim = data_table("outlier_limits.csv")
+    ok = pd.Series(True, index=v.index)
+    for _, r in lim[lim["feature"] == feature].iterrows():
+        if pd.notna(r["lo"]):
+            ok &= ~(v < float(r["lo"]))
+        if pd.notna(r["hi"]):
+            ok &= ~(v > float(r["hi"]))
+    return ok
+
+
 def complete_bp(b: pd.DataFrame) -> pd.DataFrame:
     """Fill one missing BP of (SysBP, MeanBP, DiaBP) from the other two (AI-Clinician):
     MAP = (Sys + 2 Dia) / 3, Dia = (3 MAP - Sys) / 2, Sys = 3 MAP - 2 Dia.
-    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.)"""
+    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.) A completed
+    value outside the feature's outlier limits (e.g. a negative diastolic from an
+    inconsistent pair) is left missing, as a charted one would be deleted."""
     b = b.copy()
-    s, m, d = b["SysBP"], b["MeanBP"], b["DiaBP"]
-    b.loc[m.isna() & s.notna() & d.notna(), "MeanBP"] = (s + 2 * d) / 3
-    m = b["MeanBP"]
-    b.loc[d.isna() & s.notna() & m.notna(), "DiaBP"] = (3 * m - s) / 2
-    d = b["DiaBP"]
-    b.loc[s.isna() & m.notna() & d.notna(), "SysBP"] = 3 * m - 2 * d
+
+    def fill(feat: str, need: pd.Series, v: pd.Series) -> None:
+        b.loc[need & _within_limits(feat, v), feat] = v
+
+    s = b["SysBP"]
+    fill("MeanBP", b["MeanBP"].isna() & s.notna() & b["DiaBP"].notna(), (s + 2 * b["DiaBP"]) / 3)
+    fill("DiaBP", b["DiaBP"].isna() & s.notna() & b["MeanBP"].notna(), (3 * b["MeanBP"] - s) / 2)
+    fill("SysBP", s.isna() & b["MeanBP"].notna() & b["DiaBP"].notna(),
+         3 * b["MeanBP"] - 2 * b["DiaBP"])
     return b
 
 
-def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -> pd.DataFrame:
-    """Fill a missing block value with the last measurement before the block start
-    (INTIME + t h) if it is at most hold_hours old (sample_and_hold.csv). Measurements
-    before ICU admission count (labs are drawn on the ward / in the ED).
+HOLDS = ("last_value", "last_hour_mean")
 
-    Rule (AI-Clinician SAH.m): a value is carried forward for hold_hours after it was taken.
-    Several values taken at the same last instant are averaged.
+
+def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series,
+                    how: str = "last_value") -> pd.DataFrame:
+    """Fill a missing block value from measurements taken before the block start
+    (INTIME + t h) if the last one is at most hold_hours old (sample_and_hold.csv).
+    Measurements before ICU admission count (labs are drawn on the ward / in the ED).
+
+    ``how="last_value"`` (AI-Clinician SAH.m: a value is carried forward for hold_hours
+    after it was taken): the last value; several values taken at that same instant are
+    averaged. ``how="last_hour_mean"``: the mean of the values of the last whole hour
+    [INTIME + k h, INTIME + (k + 1) h) before the block that has any, held for hold_hours
+    after the last of them. Either way only values charted before the block start are used.
     """
+    if how not in HOLDS:
+        raise ContractError(f"sample_and_hold: how must be one of {HOLDS}, got {how!r}")
     hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
     out = blocks.copy()
     keys = out.index.to_frame(index=False)
@@ -126,12 +152,21 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
         miss = out[feat].isna().to_numpy()
         if not miss.any():
             continue
-        # values charted at the same instant (e.g. a weight in kg and in lb) are averaged,
-        # as within a block; otherwise the held value would depend on row order
-        e = (ev[ev["feature"] == feat].groupby(["icustay_id", "time"], as_index=False)["value"]
-             .mean().sort_values("time", kind="stable"))
+        e = ev[ev["feature"] == feat]
         if e.empty:
             continue
+        if how == "last_hour_mean":
+            # hour buckets on INTIME's grid (negative before admission); a bucket ending
+            # after a block start never precedes it, since blocks share the grid
+            k = np.floor((e["time"].to_numpy() - intime.reindex(e["icustay_id"]).to_numpy())
+                         / HOUR).astype("int64")
+            e = (e.assign(k=k).groupby(["icustay_id", "k"], as_index=False)
+                 .agg(time=("time", "max"), value=("value", "mean")))
+        else:
+            # values charted at the same instant (e.g. a weight in kg and in lb) are
+            # averaged, as within a block; otherwise the result would depend on row order
+            e = e.groupby(["icustay_id", "time"], as_index=False)["value"].mean()
+        e = e.sort_values("time", kind="stable")
         q = pd.DataFrame({"icustay_id": keys["icustay_id"].to_numpy()[miss],
                           "start": start[miss], "row": np.flatnonzero(miss)})
         q = q.sort_values("start")
@@ -146,40 +181,54 @@ def sample_and_hold(blocks: pd.DataFrame, ev: pd.DataFrame, intime: pd.Series) -
     return out
 
 
-def knn_impute(x: np.ndarray, chunk: int = 10_000, batch: int = 512) -> np.ndarray:
+def knn_impute(x: np.ndarray, groups: np.ndarray | None = None,
+               times: np.ndarray | None = None, chunk: int = 10_000,
+               batch: int = 512) -> np.ndarray:
     """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
-    on chunks of 10,000 records).
+    on chunks of 10,000 records), causal: donors are rows of *other* stays at the same or
+    an earlier hour.
 
-    For a row with missing column j, the donor is the row, among rows with column j observed,
-    minimising the mean over commonly observed columns of ((x_i - x_k) / sd)^2 (standardised
-    Euclidean distance, sd = column standard deviation over all rows; averaging over the
-    shared columns keeps rows with different missingness comparable); ties go to the first
-    row. Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
-    Columns with no observed value in a chunk stay NaN.
+    Row i belongs to stay g = groups[i] at hour t = times[i]. Its eligible donors for a
+    missing column j are the rows k with groups[k] != g, times[k] <= t and column j
+    observed; the donor minimises the mean over commonly observed columns of
+    ((x_i - x_k) / sd_{g,t})^2 (standardised Euclidean distance; averaging over the shared
+    columns keeps rows with different missingness comparable); ties go to the first row.
+    sd_{g,t} is the column standard deviation over the eligible rows (other stays, hours
+    <= t). So the imputed values of hour t depend only on row i and on rows of other stays
+    at hours <= t, never on anything charted after the end of hour t, neither in the stay
+    itself (AI-Clinician imputes over all records, so a stay's later hours are its usual
+    donors) nor in the other stays. ``groups=None``: each row its own stay; ``times=None``:
+    all rows at the same hour (plain 1-NN with a leave-one-out scale).
+    Rows are processed in chunks of ``chunk`` rows, donors searched within the chunk.
+    Cells without any eligible donor stay NaN.
 
     Cost: linear in the number of rows (chunk-bounded). Within a chunk, distances of a batch
-    of rows to all rows come from matrix products, with z = x / sd zero-filled and O the
-    observed mask: sum_shared (z_i - z_k)^2 = (z_i^2) . O_k + O_i . (z_k^2) - 2 z_i . z_k,
-    n_shared = O_i . O_k. The donor is then confirmed by the direct formula on every row
-    within 1e-6 (1 + d_min) of the approximate minimum (the expansion's rounding error is
-    ~1e-13 of the squares), so the result equals the direct definition, ties included
-    (``_knn_impute_direct`` is that definition, kept for tests and benchmarks).
+    of rows to all rows come from matrix products, with x zero-filled, O the observed mask
+    and w_i = 1 / sd_{g(i),t(i)}^2: sum_shared w (x_i - x_k)^2 = (w O_i x_i^2) . O_k
+    - 2 (w O_i x_i) . x_k + (w O_i) . (O_k x_k^2), n_shared = O_i . O_k. The donor is then
+    confirmed by the direct formula on every row within 1e-6 (1 + d_min) of the
+    approximate minimum (the expansion's rounding error is ~1e-13 of the squares), so the
+    result equals the direct definition, ties included (``_knn_impute_direct``).
     """
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    sd = _knn_scale(x)
+    g, tt = _knn_keys(x, groups, times)
+    inv_var = 1.0 / _knn_scale(x, g, tt) ** 2  # per row: 1 / sd_{g(i),t(i)}^2
     for c0 in range(0, len(x), chunk):
-        xc = x[c0:c0 + chunk] / sd
+        xc = x[c0:c0 + chunk]
+        gc, tc = g[c0:c0 + chunk], tt[c0:c0 + chunk]
         obs = np.isfinite(xc)
         z = np.where(obs, xc, 0.0)
         z2, of = z * z, obs.astype(float)
         rows = np.flatnonzero(~obs.all(axis=1))
         for b0 in range(0, len(rows), batch):
             r = rows[b0:b0 + batch]
-            num = z2[r] @ of.T + of[r] @ z2.T - 2.0 * (z[r] @ z.T)
+            w = inv_var[c0 + r] * of[r]
+            num = (w * z2[r]) @ of.T - 2.0 * ((w * z[r]) @ z.T) + w @ z2.T
             n = of[r] @ of.T
             approx = np.where(n > 0, num / np.maximum(n, 1.0), np.inf)
-            approx[np.arange(len(r)), r] = np.inf  # never its own donor
+            # never a donor from its own stay or from a later hour
+            approx[(gc[r][:, None] == gc[None, :]) | (tc[None, :] > tc[r][:, None])] = np.inf
             for j in np.flatnonzero(~obs[r].all(axis=0)):
                 need = np.flatnonzero(~obs[r, j])
                 cand = np.where(obs[:, j], approx[need], np.inf)
@@ -188,38 +237,77 @@ def knn_impute(x: np.ndarray, chunk: int = 10_000, batch: int = 512) -> np.ndarr
                 k = np.argmin(cand, axis=1)
                 for p in np.flatnonzero(np.isfinite(dmin) & (near.sum(axis=1) > 1)):
                     c = np.flatnonzero(near[p])  # near-ties: decide by the direct formula
-                    k[p] = c[int(np.argmin(_direct_dist(xc, obs, r[need[p]], c)))]
+                    i = r[need[p]]
+                    k[p] = c[int(np.argmin(_direct_dist(xc, obs, i, c, inv_var[c0 + i])))]
                 ok = np.isfinite(dmin)
                 out[c0 + r[need[ok]], j] = x[c0 + k[ok], j]
     return out
 
 
-def _knn_scale(x: np.ndarray) -> np.ndarray:
-    sd = np.nanstd(x, axis=0)
-    sd[~np.isfinite(sd) | (sd == 0)] = 1.0
-    return sd
+def _knn_keys(x: np.ndarray, groups, times) -> tuple[np.ndarray, np.ndarray]:
+    g = np.arange(len(x)) if groups is None else np.asarray(groups)
+    t = np.zeros(len(x), dtype="int64") if times is None else np.asarray(times)
+    if len(g) != len(x) or len(t) != len(x):
+        raise ValueError("knn_impute: groups and times need one entry per row")
+    return g, t
 
 
-def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray) -> np.ndarray:
-    """Mean squared standardised difference of row i to ``rows`` over shared columns."""
+def _knn_scale(x: np.ndarray, groups: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Per row i, the column standard deviations (ddof 0, observed values) over the rows
+    of every group but groups[i] with times <= times[i]; 1 where undefined or 0.
+
+    Sums per (group, hour) are accumulated over hours <= t, then summed over the other
+    groups as a prefix sum over the groups before g plus a suffix sum over those after g,
+    so not one rounding depends on group g's values or on any row of a later hour."""
+    gu, gi = np.unique(groups, return_inverse=True)
+    tu, ti = np.unique(times, return_inverse=True)
+    obs = np.isfinite(x)
+    z = np.where(obs, x, 0.0)
+    shape = (len(gu), len(tu), x.shape[1])
+    s = [np.zeros(shape) for _ in range(3)]
+    for acc, v in zip(s, (obs.astype(float), z, z * z), strict=True):
+        np.add.at(acc, (gi, ti), v)
+
+    def others(a: np.ndarray) -> np.ndarray:
+        a = np.cumsum(a, axis=1)  # hours <= t
+        zero = np.zeros_like(a[:1])
+        pre = np.concatenate([zero, np.cumsum(a, axis=0)[:-1]])
+        suf = np.concatenate([np.cumsum(a[::-1], axis=0)[::-1][1:], zero])
+        return pre + suf
+
+    n, t1, t2 = (others(a) for a in s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = t1 / n
+        var = np.maximum(t2 / n - mean * mean, 0.0)
+    sd = np.sqrt(var)
+    sd[~np.isfinite(sd) | (sd <= 1e-12 * (1.0 + np.abs(np.nan_to_num(mean))))] = 1.0
+    return sd[gi, ti]
+
+
+def _direct_dist(xc: np.ndarray, obs: np.ndarray, i: int, rows: np.ndarray,
+                 inv_var: np.ndarray) -> np.ndarray:
+    """Mean of inv_var * (x_i - x_k)^2 of row i to ``rows`` over shared columns."""
     shared = obs[rows] & obs[i]
     diff = np.where(shared, xc[rows] - np.where(obs[i], xc[i], 0.0), 0.0)
     n = shared.sum(axis=1)
-    return np.where(n > 0, (diff ** 2).sum(axis=1) / np.maximum(n, 1), np.inf)
+    return np.where(n > 0, (diff ** 2 * inv_var).sum(axis=1) / np.maximum(n, 1), np.inf)
 
 
-def _knn_impute_direct(x: np.ndarray, chunk: int = 10_000) -> np.ndarray:
+def _knn_impute_direct(x: np.ndarray, groups: np.ndarray | None = None,
+                       times: np.ndarray | None = None, chunk: int = 10_000) -> np.ndarray:
     """``knn_impute`` by the definition, one row at a time (O(chunk) numpy work per row)."""
     x = np.asarray(x, dtype=float)
     out = x.copy()
-    sd = _knn_scale(x)
+    g, tt = _knn_keys(x, groups, times)
+    inv_var = 1.0 / _knn_scale(x, g, tt) ** 2
     for c0 in range(0, len(x), chunk):
-        xc = x[c0:c0 + chunk] / sd
+        xc = x[c0:c0 + chunk]
+        gc, tc = g[c0:c0 + chunk], tt[c0:c0 + chunk]
         obs = np.isfinite(xc)
         every = np.arange(len(xc))
         for i in np.flatnonzero(~obs.all(axis=1)):
-            dist = _direct_dist(xc, obs, i, every)
-            dist[i] = np.inf
+            dist = _direct_dist(xc, obs, i, every, inv_var[c0 + i])
+            dist[(gc == gc[i]) | (tc > tc[i])] = np.inf
             for j in np.flatnonzero(~obs[i]):
                 cand = np.where(obs[:, j], dist, np.inf)
                 k = int(np.argmin(cand))

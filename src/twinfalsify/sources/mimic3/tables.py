@@ -38,6 +38,10 @@ REQUIRED_COLUMNS: dict[str, tuple[str, ...]] = {
                        "RATEUOM", "STATUSDESCRIPTION"),
     "INPUTEVENTS_CV": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "AMOUNT", "RATE", "RATEUOM"),
 }
+# Tables read only by some options (sofa = ai_clinician: urine output).
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {
+    "OUTPUTEVENTS": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "VALUE"),
+}
 
 
 def resolve_mimic3_dir(configured: str | os.PathLike[str] | None) -> Path:
@@ -88,23 +92,79 @@ def _reader(path: Path) -> str:
     return f"read_csv({lit}, header = true, all_varchar = true, quote = '\"', escape = '\"')"
 
 
-def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1
-            ) -> duckdb.DuckDBPyConnection:
-    """DuckDB connection with one view per MIMIC table (upper-case view names)."""
+def _unreadable(path: Path, exc: Exception) -> ContractError:
+    """One line naming the file, from a DuckDB error (its first line, without the class)."""
+    msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return ContractError(f"{path}: cannot be read as a MIMIC-III table ({msg}); the file may be "
+                         "truncated or corrupt: download or export it again")
+
+
+def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1,
+            optional: tuple[str, ...] = ()) -> duckdb.DuckDBPyConnection:
+    """DuckDB connection with one view per MIMIC table (upper-case view names): ``tables``
+    (default: every table of REQUIRED_COLUMNS) plus ``optional`` ones (OPTIONAL_COLUMNS).
+
+    Each file is checked on open, cheaply (its header and first row): an unreadable file
+    (empty, not gzip, truncated within the first block), a missing column or a table with a
+    header and no rows raises ContractError naming the file. Damage further into a large
+    file only shows when a query reaches it: ``diagnose`` then names the file."""
     con = duckdb.connect(database=":memory:")
     con.execute(f"SET threads = {int(threads)}")
     con.execute("SET enable_progress_bar = false")  # it would write to the rule's stderr
-    for table in tables or tuple(REQUIRED_COLUMNS):
+    needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}
+    for table in (*(tables or tuple(REQUIRED_COLUMNS)), *optional):
         path = find_table(folder, table)
-        con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')
-        cols = {c.upper() for c in con.execute(f'SELECT * FROM "{table}" LIMIT 0').df().columns}
-        missing = [c for c in REQUIRED_COLUMNS.get(table, ()) if c not in cols]
+        try:
+            con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')
+            cols = {c.upper() for c in
+                    con.execute(f'SELECT * FROM "{table}" LIMIT 0').df().columns}
+            empty = con.execute(f'SELECT 1 FROM "{table}" LIMIT 1').fetchone() is None
+        except duckdb.Error as exc:
+            con.close()
+            raise _unreadable(path, exc) from None
+        missing = [c for c in needed.get(table, ()) if c not in cols]
         if missing:
+            con.close()
             raise ContractError(
                 f"{path}: missing MIMIC-III v1.4 column(s) {', '.join(missing)} "
                 f"(found {', '.join(sorted(cols))})"
             )
+        if empty:
+            con.close()
+            raise ContractError(f"{path}: header only, no rows: every MIMIC-III table the "
+                                "extraction reads has rows; the file may be cut short")
     return con
+
+
+def diagnose(folder: Path, tables: tuple[str, ...], exc: Exception) -> ContractError:
+    """After a DuckDB error in a query: scan each table in full (only on this failure path)
+    and name the first that cannot be read; else name the folder and the error."""
+    for table in tables:
+        path = find_table(folder, table)
+        con = duckdb.connect(database=":memory:")
+        try:
+            con.execute(f"SELECT count(*) FROM {_reader(path)}").fetchone()
+        except duckdb.Error as exc2:
+            return _unreadable(path, exc2)
+        finally:
+            con.close()
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return ContractError(f"MIMIC-III tables in {folder}: query failed ({first})")
+
+
+def data_fingerprint(folder: Path) -> dict[str, str]:
+    """The resolved folder and a cheap fingerprint of its files (names, sizes, mtimes; no
+    content is read): a rule parameter, so that another folder or a changed file reruns
+    the extraction."""
+    import hashlib
+
+    folder = Path(folder).resolve()
+    h = hashlib.sha256()
+    for f in sorted(folder.iterdir()):
+        if f.is_file():
+            st = f.stat()
+            h.update(f"{f.name}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
+    return {"dir": str(folder), "files": h.hexdigest()[:16]}
 
 
 # ---------------------------------------------------------------- package data tables
