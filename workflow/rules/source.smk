@@ -13,6 +13,7 @@ rule trajectories:
     params:
         source=canon(config["source"]),
         seed=config["seed"],
+        code=code("trajectories"),
     script:
         "../../scripts/trajectories.py"
 
@@ -33,5 +34,6 @@ rule split:
     params:
         d0_fraction=config["split"]["d0_fraction"],
         seed=config["seed"],
+        code=code("split"),
     script:
         "../../scripts/split.py"
