@@ -231,6 +231,10 @@ def test_fingerprint_covers_exactly_the_modules_a_script_reaches(tmp_path):
     reach = {s: provenance.script_modules(scripts / f"{s}.py", src) for s in ("split", "tests")}
     assert "twinfalsify.bounds" in reach["tests"]
     assert "twinfalsify.bounds" not in reach["split"]
+    # the costly twin stage does not reach the statistics: a fix there reruns no twin run
+    for costly in ("twin_plan", "twin_shard", "twin_runs"):
+        assert "twinfalsify.bounds" not in provenance.script_modules(
+            scripts / f"{costly}.py", src), costly
     assert {"twinfalsify", "twinfalsify.split", "twinfalsify.schema"} <= reach["split"]
     before = {s: provenance.code_fingerprint(scripts / f"{s}.py", src) for s in reach}
     bounds = src / "twinfalsify" / "bounds.py"
@@ -243,3 +247,96 @@ def test_fingerprint_covers_exactly_the_modules_a_script_reaches(tmp_path):
         scripts / "twin_shard.py", src)
     assert "twinfalsify.runs.serve" in provenance.script_modules(
         scripts / "twin_shard.py", src, ["twinfalsify.runs.serve"])
+
+
+# ---- what reruns (snakemake -n on a finished small study) ---------------------------------
+
+
+def _rule_scripts(repo) -> dict[str, str]:
+    """rule name -> the script it runs, read from workflow/rules/*.smk."""
+    import re
+
+    out = {}
+    for smk in (repo / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"\n(?=rule \w+:)", smk.read_text()):
+            m = re.match(r"rule (\w+):", block)
+            s = re.search(r'scripts/(\w+)\.py', block)
+            if m and s:
+                out[m.group(1)] = s.group(1)
+    return out
+
+
+def _dry_run(work, config, repo):
+    """{rule: reason} of the jobs `snakemake -n` would run (empty: nothing to do)."""
+    import re
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "-n", "--cores", "2"],
+        capture_output=True, text=True, timeout=300,
+        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src")},
+    )
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    jobs: dict[str, set[str]] = {}
+    for m in re.finditer(r"^rule (\w+):\n(?:    .*\n)*?    reason: (.*)$", out, re.M):
+        jobs.setdefault(m.group(1), set()).add(m.group(2))
+    return jobs
+
+
+@pytest.mark.slow
+def test_what_reruns_after_which_change(tmp_path):
+    """On a finished small study: execution-only twin keys rerun nothing; a library edit
+    reruns exactly the rules whose scripts reach the edited module (params changed) and
+    what is downstream of them (inputs updated); a study parameter reruns its consumers."""
+    import shutil
+
+    import yaml
+
+    repo = tmp_path / "repo"
+    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+        src, dst = ROOT / part, repo / part
+        if src.is_dir():
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
+                              "timeout_s": 60, "retries": 1}
+    config = tmp_path / "study.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    work = tmp_path / "work"
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "--cores", "2"],
+        capture_output=True, text=True, timeout=900,
+        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src"), "MPLBACKEND": "Agg"},
+    )
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert _dry_run(work, config, repo) == {}
+
+    # execution-only keys of a served twin: no shard, no job at all
+    cfg["twins"]["oracle"].update(workers=2, timeout_s=90, retries=0, batch_size=7,
+                                  fail_fast_runs=5, max_restarts=3)
+    config.write_text(yaml.safe_dump(cfg))
+    assert _dry_run(work, config, repo) == {}
+
+    # a library edit: exactly the rules whose scripts reach bounds.py, by params
+    bounds = repo / "src" / "twinfalsify" / "bounds.py"
+    bounds.write_text(bounds.read_text() + "\n# a fix\n")
+    jobs = _dry_run(work, config, repo)
+    reach = {rule for rule, script in _rule_scripts(repo).items()
+             if "twinfalsify.bounds" in provenance.script_modules(
+                 repo / "scripts" / f"{script}.py", repo / "src")}
+    by_params = {r for r, why in jobs.items() if any("Params have changed" in w for w in why)}
+    assert by_params == reach & set(jobs) and by_params, (by_params, reach)
+    assert "tests" in by_params and "observational_side" in by_params
+    for rule in ("trajectories", "split", "design", "twin_plan", "twin_shard", "twin_runs"):
+        assert rule not in jobs, (rule, jobs.get(rule))
+    others = set(jobs) - by_params - {"all"}
+    assert all(any("updated by another job" in w for w in jobs[r]) for r in others), jobs

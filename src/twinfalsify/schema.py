@@ -86,6 +86,19 @@ TWIN_STATUSES: tuple[str, ...] = (
 )
 
 
+@dataclass(frozen=True)
+class TwinNodes:
+    """Twin runs in prefix-tree form: one row per (node = a_1:s, X_0).
+
+    values: (n_nodes, m, F) features at hour s = len(node) (NaN where the run
+    failed at or before hour s); x0: (m, F) real X_0 rows of the initial stays.
+    """
+
+    index: dict[tuple[int, ...], int]
+    values: np.ndarray
+    x0: np.ndarray
+
+
 class ContractError(ValueError):
     """Input that breaks a data contract; the message names file, column and problem."""
 

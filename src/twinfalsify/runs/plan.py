@@ -24,9 +24,8 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import noise
-from twinfalsify.bounds import TwinNodes
 from twinfalsify.design import ActionBins
-from twinfalsify.schema import FEATURES, STAY_ID, ContractError, mark_implausible
+from twinfalsify.schema import FEATURES, STAY_ID, ContractError, TwinNodes, mark_implausible
 from twinfalsify.twins.base import Twin
 
 log = logging.getLogger("twinfalsify")
