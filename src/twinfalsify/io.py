@@ -85,11 +85,36 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
     except ContractError as exc:
         log.error("ERROR: %s", exc)
         sys.exit(1)
+    except OSError as exc:
+        if exc.filename is None:  # not about a file: a bug, keep the traceback
+            log.error("ERROR: unexpected failure in rule %s:\n%s", snakemake.rule,
+                      traceback.format_exc())
+        else:  # read-only or full results folder, a file where a folder should be
+            log.error("ERROR: %s: %s", exc.filename, exc.strerror or exc)
+        sys.exit(1)
     except Exception:
         log.error(
             "ERROR: unexpected failure in rule %s:\n%s", snakemake.rule, traceback.format_exc()
         )
         sys.exit(1)
+
+
+def unwritable(folder: str | Path) -> str | None:
+    """Why results cannot be written under ``folder`` (one line), or None.
+
+    The folder may not exist yet: its nearest existing ancestor must be a writable folder.
+    Checked when the workflow is parsed, so a read-only results folder stops the run before
+    the first rule rather than as an error after it computed.
+    """
+    here = Path(folder).absolute()
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    if not here.is_dir():
+        return f"cannot write results under {folder}: {here} is a file, not a folder"
+    if not os.access(here, os.W_OK | os.X_OK):
+        return (f"cannot write results under {folder}: {here} is not writable "
+                "(run from a writable copy of the study folder)")
+    return None
 
 
 def config_error(config: dict, schema_path: str | Path) -> str | None:

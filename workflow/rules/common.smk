@@ -1,5 +1,4 @@
 import json
-import os
 from pathlib import Path
 
 import sys
@@ -8,7 +7,7 @@ from snakemake.utils import validate
 
 SRC = Path(workflow.basedir) / "src"
 sys.path.insert(0, str(SRC))
-from twinfalsify.io import load_yaml_strict  # noqa: E402
+from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
 from twinfalsify.provenance import code_fingerprint  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
@@ -43,20 +42,9 @@ if _shard_warning:
 LOGS = f"{R}/logs"
 
 
-def _writable_results():
-    """Refuse a results folder that cannot be written now, not after the first rules."""
-    here = Path(R).resolve()
-    while not here.exists():
-        here = here.parent
-    if not os.access(here, os.W_OK | os.X_OK):
-        raise ValueError(
-            f"cannot write results: {here} is not writable (results go to {R}/; "
-            "run from a writable copy of the study folder)"
-        )
-
-
-if not getattr(workflow, "dryrun", False):  # a dry run writes nothing
-    _writable_results()
+# a results folder that cannot be written stops the run now, not after the first rules
+if not getattr(workflow, "dryrun", False) and (_unwritable := unwritable(R)):
+    raise ValueError(_unwritable)
 
 
 def code(script, extra=()):
