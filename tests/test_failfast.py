@@ -281,7 +281,8 @@ def _dry_run(work, config, repo):
     out = done.stdout + done.stderr
     assert done.returncode == 0, out[-3000:]
     jobs: dict[str, set[str]] = {}
-    for m in re.finditer(r"^(?:local)?rule (\w+):\n(?:    .*\n)*?    reason: (.*)$", out, re.M):
+    # grouped jobs (the twin shards) are listed indented under "Group job twin_shards"
+    for m in re.finditer(r"^ *(?:local)?rule (\w+):\n(?: +.*\n)*? +reason: (.*)$", out, re.M):
         jobs.setdefault(m.group(1), set()).add(m.group(2))
     return jobs
 
@@ -335,7 +336,7 @@ def test_what_reruns_after_which_change(tmp_path):
     reach = {rule for rule, script in _rule_scripts(repo).items()
              if "twinfalsify.bounds" in provenance.script_modules(
                  repo / "scripts" / f"{script}.py", repo / "src")}
-    ran = set(re.findall(r"^(?:local)?rule (\w+):", done.stdout + done.stderr, re.M))
+    ran = set(re.findall(r"^ *(?:local)?rule (\w+):", done.stdout + done.stderr, re.M))
     by_params = {r for r, why in jobs.items() if any("Params have changed" in w for w in why)}
     # Snakemake gives one reason per job: a job whose inputs an earlier rerun job rewrites
     # says so, even if its params changed too; so: every rule of the study that reaches
@@ -347,6 +348,16 @@ def test_what_reruns_after_which_change(tmp_path):
     assert all(any("updated by another job" in w for w in jobs[r]) for r in others), jobs
     for rule in ("trajectories", "split", "design", "twin_plan", "twin_shard", "twin_runs"):
         assert rule in ran and rule not in jobs, (rule, jobs.get(rule))
+    bounds.write_text(bounds.read_text().removesuffix("\n# a fix\n"))
+    assert _dry_run(work, config, repo) == {}  # back as it was: nothing to do
+
+    # a builtin twin's module: both twins' shards (and what follows), not the design stage
+    builtin = repo / "src" / "twinfalsify" / "twins" / "builtin.py"
+    builtin.write_text(builtin.read_text() + "\n# a fix\n")
+    jobs = _dry_run(work, config, repo)
+    assert "twin_shard" in jobs and any("Params have changed" in w for w in jobs["twin_shard"])
+    for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
+        assert rule not in jobs, (rule, jobs.get(rule))
 
 
 # ---- the workflow refuses at parse time, writing nothing ----------------------------------
@@ -414,3 +425,23 @@ def test_rule_script_os_error_is_one_line(tmp_path, capsys):
     assert unwritable(blocker / "test") == (
         f"cannot write results under {blocker / 'test'}: {blocker} is a file, not a folder")
     assert unwritable(tmp_path / "new" / "deeper") is None
+
+
+def test_twin_context_stays_valid_when_the_study_folder_moves(tmp_path):
+    """twin_context.json names D0 relative to its own folder: a moved copy still builds."""
+    import json
+    import shutil
+
+    from twinfalsify.runs.registry import make_twin
+    from twinfalsify.sources.synthetic import generate
+
+    old = tmp_path / "old" / "results" / "s"
+    old.mkdir(parents=True)
+    generate({"n_stays": 60}, seed=2).to_parquet(old / "d0.parquet")
+    (old / "twin_context.json").write_text(json.dumps(
+        {"source": {"kind": "synthetic", "synthetic": {"n_stays": 60}}, "d0": "d0.parquet"}))
+    new = tmp_path / "elsewhere" / "s"
+    shutil.move(old, new)
+    twin = make_twin("f", {"kind": "fitted"}, new / "twin_context.json")
+    x0, doses, seeds = _study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
+    assert np.isfinite(twin.simulate(x0, doses, seeds).features).all()

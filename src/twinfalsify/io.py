@@ -99,6 +99,27 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
         sys.exit(1)
 
 
+def cli_main(main: Callable[[], int | None], prog: str) -> int:
+    """Run a command-line entry point; bad input ends in one line on stderr, exit code 2.
+
+    Bad input here: a ContractError (bad data, config or context), a file that cannot be
+    read or written, an engine module that cannot be imported. Anything else is a bug and
+    keeps its traceback.
+    """
+    try:
+        return int(main() or 0)
+    except ContractError as exc:
+        what = str(exc)
+    except ImportError as exc:
+        what = f"cannot import {exc.name or ''}: {exc}".replace(":  ", ": ")
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        what = f"{exc.filename}: {exc.strerror or exc}"
+    print(f"{prog}: error: {what}", file=sys.stderr, flush=True)
+    return 2
+
+
 def unwritable(folder: str | Path) -> str | None:
     """Why results cannot be written under ``folder`` (one line), or None.
 
