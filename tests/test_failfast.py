@@ -63,7 +63,7 @@ def test_crashing_twin_stops_after_max_restarts(tmp_path):
         simulate_via_protocol(cmd, *_many(100), env=ENV, retries=2, fail_fast_runs=0,
                               max_restarts=5, progress=False)
     msg = str(err.value)
-    assert "worker restarted 5 times in a row without an ok run" in msg
+    assert "workers restarted 5 times before any run was ok" in msg
     assert "first failure: error: worker exited with code 3" in msg
     # 1 start + 5 restarts answered; the 6th restart trips before its request
     assert len(log.read_text().splitlines()) == 6
@@ -71,6 +71,14 @@ def test_crashing_twin_stops_after_max_restarts(tmp_path):
 
 def test_breaker_leaves_a_partly_failing_twin_alone():
     """Failures mixed with ok runs (even more than K of them) never trip the breaker."""
+    # a hard X_0 after the first ok run: all its runs crash in a row, far more restarts
+    # than max_restarts, and each run is recorded (the breaker only guards the start)
+    x0, doses, seeds = _many(30)
+    crash = ",".join(str(s) for s in seeds[5:20])
+    res = simulate_via_protocol([*FAULTY_TWIN, f"--mode=crash:{crash}"], x0, doses, seeds,
+                                env=ENV, retries=1, fail_fast_runs=3, max_restarts=2,
+                                progress=False)
+    assert (res.status == "error").sum() == 15 and (res.status == "ok").sum() == 15
     res = simulate_via_protocol([*FAULTY_TWIN, "--mode=error:%4=1", "--mode=error:%4=2"],
                                 *_many(60), env=ENV, retries=0, fail_fast_runs=5,
                                 max_restarts=1, progress=False)

@@ -64,9 +64,11 @@ STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): star
 SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
 STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
 DEFAULT_FAIL_FAST_RUNS = 20  # circuit breaker: stop when the first K runs all failed ...
-DEFAULT_MAX_RESTARTS = 10  # ... or a worker was restarted R times with no ok run between:
+DEFAULT_MAX_RESTARTS = 10  # ... or workers were restarted R times before any run was ok:
 # a twin broken for every run (e.g. a log line on stdout) would otherwise fail all of a
-# shard's runs, restarting a worker for each, at Pulse prices days of wall time
+# shard's runs, restarting a worker for each, at Pulse prices days of wall time. Both
+# checks end with the first ok run: after it, failures are the twin's answers about hard
+# X_0 (whose runs come in a row, grouped by seed) and are recorded run by run.
 DEFAULT_BATCH_SIZE = 500  # runs per simulate_batch message (when the twin allows batches):
 # large enough that the per-message round trip (~ms) is negligible per run, small enough
 # that a batch's JSON (~1 kB per run) and a retry after a failed batch stay cheap
@@ -360,7 +362,7 @@ class _Pool:
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
         self.settled = 0  # runs recorded so far, any status
         self.any_ok = False
-        self.restarts_in_row = 0  # worker restarts since the last ok run
+        self.restarts = 0  # worker restarts before the first ok run
         self.first_failure = ""  # "status: message" of the first failed run
         self.batch_size = batch_size
         # Runs a thread takes from the queue at a time: 1 until a hello says
@@ -397,11 +399,12 @@ class _Pool:
         self.started.add(slot)
         if not first:
             with self.lock:
-                self.restarts_in_row += 1
-                restarts = self.restarts_in_row
-            if self.max_restarts and restarts > self.max_restarts:
-                self._trip(f"worker restarted {self.max_restarts} times in a row without "
-                           "an ok run")
+                self.restarts += 0 if self.any_ok else 1
+                tripped = (self.max_restarts and not self.any_ok
+                           and self.restarts > self.max_restarts)
+            if tripped:
+                self._trip(f"workers restarted {self.max_restarts} times before any run "
+                           "was ok")
         worker = _Worker(self.command, self.env)
         self.workers[slot] = worker
         where = f"twin {shlex.join(self.command)}"
@@ -466,7 +469,6 @@ class _Pool:
             self.settled += 1
             if status == "ok":
                 self.any_ok = True
-                self.restarts_in_row = 0
             elif not self.first_failure:
                 self.first_failure = f"{status}: {self.message[i]}"
             tripped = (self.fail_fast_runs and not self.any_ok
@@ -660,8 +662,8 @@ def simulate_via_protocol(
 
     Circuit breaker (ContractError naming the command, the reason and the first failed
     run's status and message): the first ``fail_fast_runs`` recorded runs all failed, or
-    a worker had to be restarted more than ``max_restarts`` times with no ok run in
-    between; 0 turns a check off. (Values are checked against the trajectory contract's
+    workers had to be restarted more than ``max_restarts`` times before any run was ok;
+    0 turns a check off. After the first ok run neither check acts. (Values are checked against the trajectory contract's
     ranges where a study stores runs, ``runs.plan.run_shard``, not here.)
     """
     for key, value in (("fail_fast_runs", fail_fast_runs), ("max_restarts", max_restarts)):
