@@ -663,8 +663,9 @@ def simulate_via_protocol(
     Circuit breaker (ContractError naming the command, the reason and the first failed
     run's status and message): the first ``fail_fast_runs`` recorded runs all failed, or
     workers had to be restarted more than ``max_restarts`` times before any run was ok;
-    0 turns a check off. After the first ok run neither check acts. (Values are checked against the trajectory contract's
-    ranges where a study stores runs, ``runs.plan.run_shard``, not here.)
+    0 turns a check off. After the first ok run neither check acts. (Values are checked
+    against the trajectory contract's ranges where a study stores runs,
+    ``runs.plan.run_shard``, not here.)
     """
     for key, value in (("fail_fast_runs", fail_fast_runs), ("max_restarts", max_restarts)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
