@@ -15,7 +15,7 @@ from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E40
 
 
 # Everything that can be checked from the config alone is checked here, at parse time,
-# before any rule runs: one line naming the key (Snakemake's own message prints the whole
+# before any job runs, in one line naming the key (Snakemake's own message prints the whole
 # schema), then Snakemake's validate for the schema's defaults.
 def _config_problem():
     for configfile in workflow.configfiles:
