@@ -1,6 +1,7 @@
 """Rule twin_plan: X_0 permutation, prefix tree of action sequences, shards."""
 
 import json  # noqa: F401
+import os
 import sys
 from pathlib import Path
 
@@ -30,7 +31,11 @@ def main(sm):
     )
     write_json(plan.to_json(), sm.output.plan)
     write_json(
-        {"source": json.loads(sm.params.source), "d0": str(Path(sm.input.d0).resolve())},
+        # relative to the context's folder: the study folder may be moved or copied
+        {
+            "source": json.loads(sm.params.source),
+            "d0": os.path.relpath(sm.input.d0, Path(sm.output.context).parent),
+        },
         sm.output.context,
     )
 

@@ -1,7 +1,9 @@
 """Bad-input corpus: every bad input gives one clear line, a non-zero exit, no partial output.
 
 Config cases (tests/bad_inputs/configs.yaml) are checked twice: the one-line message from
-``io.config_error`` names the dotted key and the problem, and ``snakemake`` itself exits
+``studyconfig.study_config_error`` (the schema, non-finite numbers, and what needs the
+library: methods and options, quantile order, figure outcomes, twin specs) names the dotted
+key and the problem, and ``snakemake`` itself exits
 non-zero on them, naming the key, with nothing written under results/. Data cases call the
 library entry points (``validate_trajectories``, ``split_stays``, ``fit_action_bins``,
 ``build_hypotheses``, the protocol runner) on a small valid input with one defect each.
@@ -24,11 +26,11 @@ from fakes import FAULTY_TWIN
 from slurm.runs import run
 
 from twinfalsify import design
-from twinfalsify.io import config_error
 from twinfalsify.runs.runner import simulate_via_protocol
 from twinfalsify.schema import FEATURES, STAY_ID, TIME, ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
+from twinfalsify.studyconfig import study_config_error
 
 ROOT = Path(__file__).resolve().parents[1]
 CORPUS = Path(__file__).with_name("bad_inputs")
@@ -61,16 +63,18 @@ def edited_config(edit: dict) -> dict:
 @pytest.mark.parametrize("case", sorted(CONFIG_CASES))
 def test_config_error_is_one_line_naming_the_key(case):
     spec = CONFIG_CASES[case]
-    msg = config_error(edited_config(spec["edit"]), SCHEMA)
+    msg = study_config_error(edited_config(spec["edit"]), SCHEMA)
     assert msg is not None and "\n" not in msg
     assert msg.startswith("config key ")
     for fragment in spec["expect"]:
         assert fragment in msg, msg
-    assert config_error(edited_config({}), SCHEMA) is None
+    assert study_config_error(edited_config({}), SCHEMA) is None
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["misspelt_nested_key", "unknown_outcome", "seed_wrong_type"])
+@pytest.mark.parametrize("case", ["misspelt_nested_key", "unknown_outcome", "seed_wrong_type",
+                                  "alpha_nan", "reversed_quantiles", "unknown_method_option",
+                                  "shift_unknown_feature"])
 def test_snakemake_refuses_bad_config_and_writes_nothing(case, tmp_path):
     spec = CONFIG_CASES[case]
     config = tmp_path / "bad.yaml"

@@ -1,7 +1,9 @@
 """The library's import graph: no cycle anywhere, and no module imports a layer above its own.
 
 Every ``import`` is counted, including those inside functions (a lazy import is still a
-dependency). The layers, bottom to top, are ``LAYERS`` below (README, "Where things live").
+dependency); the parser is ``twinfalsify.provenance``, which also gives the workflow's rules
+their code fingerprints. The layers, bottom to top, are ``LAYERS`` below (README, "Where
+things live").
 """
 
 from __future__ import annotations
@@ -11,62 +13,34 @@ from pathlib import Path
 
 import pytest
 
+from twinfalsify import provenance
+
 SRC = Path(__file__).resolve().parents[1] / "src"
 PKG = SRC / "twinfalsify"
 
 # A module may import its own layer and the layers below it, never one above.
 LAYERS: list[tuple[str, ...]] = [
-    ("twinfalsify", "schema", "io", "noise"),
+    ("twinfalsify", "schema", "io", "noise", "provenance"),
     ("sources",),
     ("split", "design", "bounds", "inference", "falsify", "tables"),
     ("twins",),
-    ("runs",),
+    ("runs", "studyconfig"),
     ("pulse",),
     ("summary", "figures", "calibration"),
 ]
 LAYER_OF = {top: i for i, tops in enumerate(LAYERS) for top in tops}
 
 
-def module_name(path: Path) -> str:
-    parts = list(path.relative_to(SRC).with_suffix("").parts)
-    if parts[-1] == "__init__":
-        parts = parts[:-1]
-    return ".".join(parts)
-
-
 def modules() -> dict[str, Path]:
-    return {module_name(p): p for p in PKG.rglob("*.py")}
+    return provenance.modules(SRC)
 
 
 def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
-    """Library modules that ``name`` imports (absolute or relative, at any depth)."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    out: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            targets = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join([*anchor, base] if base else anchor)
-            # "from pkg import mod" imports the module pkg.mod when there is one
-            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base
-                       for a in node.names]
-        else:
-            continue
-        for t in targets:
-            while t and t not in known:
-                t = t.rpartition(".")[0]
-            if t and t != name:
-                out.add(t)
-    return out
+    return provenance.imports_of(name, path, known)
 
 
 def graph() -> dict[str, set[str]]:
-    mods = modules()
-    known = set(mods)
-    return {name: imports_of(name, path, known) for name, path in mods.items()}
+    return provenance.graph(SRC)
 
 
 def layer(name: str) -> int:

@@ -60,7 +60,12 @@ def test_protocol_twin_is_bit_identical_to_in_process(small_study, spec):
     served.progress = False
     a, b = _all_shards(local, study), _all_shards(served, study)
     assert len(a) == len(study.plan.nodes) * len(study.plan.x0_stay_ids)
-    assert (a["status"] == "ok").all()
+    if spec["kind"] == "fitted":
+        # a linear twin with residual noise leaves the contract's ranges on this small study
+        # (paO2 < 0 mmHg): those runs are implausible, the same ones served and in-process
+        assert set(a["status"]) <= {"ok", "implausible"}
+    else:
+        assert (a["status"] == "ok").all()
     # FittedTwin sums its linear predictor in a fixed order, so batching never changes bits
     pd.testing.assert_frame_equal(a, b, check_exact=True)
 

@@ -78,8 +78,10 @@ def expected_features(x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) ->
         iv = np.cumsum(doses[i, :, 0])
         vaso = np.cumsum(doses[i, :, 1])
         hours = np.arange(1, doses.shape[1] + 1)
-        shift = 0.5 * hours + 0.01 * iv + 10.0 * vaso + 0.001 * (int(seeds[i]) % 97)
-        out[i] = x0.iloc[i][list(FEATURES)].to_numpy(float)[None, :] + shift[:, None]
+        shift = 0.001 * (0.5 * hours + 0.01 * iv + 10.0 * vaso + 0.001 * (int(seeds[i]) % 97))
+        moves = np.array([f not in ("age", "sex", "weight") for f in FEATURES], dtype=float)
+        out[i] = (x0.iloc[i][list(FEATURES)].to_numpy(float)[None, :]
+                  + shift[:, None] * moves[None, :])
     return out
 
 

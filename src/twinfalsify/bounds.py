@@ -20,7 +20,10 @@ import pandas as pd
 
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
-from twinfalsify.schema import FEATURES, T_MAX, ContractError
+
+# TwinNodes lives in schema (a data contract), so the twin stage does not depend on this
+# module: a fix here reruns the tests, not the twin runs (code fingerprints, README)
+from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes
 
 _CHUNK_CELLS = 40_000_000  # booleans per chunk (H_chunk x n x (T + 1)): bounded memory
 
@@ -107,19 +110,6 @@ def read_observational_side(
         read_parquet(follow, "follower outcomes"),
     )
     return hyps, obs
-
-
-@dataclass(frozen=True)
-class TwinNodes:
-    """Twin runs in prefix-tree form: one row per (node = a_1:s, X_0).
-
-    values: (n_nodes, m, F) features at hour s = len(node) (NaN where the run
-    failed at or before hour s); x0: (m, F) real X_0 rows of the initial stays.
-    """
-
-    index: dict[tuple[int, ...], int]
-    values: np.ndarray
-    x0: np.ndarray
 
 
 def twin_side(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 import traceback
@@ -84,11 +85,57 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
     except ContractError as exc:
         log.error("ERROR: %s", exc)
         sys.exit(1)
+    except OSError as exc:
+        if exc.filename is None:  # not about a file: a bug, keep the traceback
+            log.error("ERROR: unexpected failure in rule %s:\n%s", snakemake.rule,
+                      traceback.format_exc())
+        else:  # read-only or full results folder, a file where a folder should be
+            log.error("ERROR: %s: %s", exc.filename, exc.strerror or exc)
+        sys.exit(1)
     except Exception:
         log.error(
             "ERROR: unexpected failure in rule %s:\n%s", snakemake.rule, traceback.format_exc()
         )
         sys.exit(1)
+
+
+def cli_main(main: Callable[[], int | None], prog: str) -> int:
+    """Run a command-line entry point; bad input ends in one line on stderr, exit code 2.
+
+    Bad input here: a ContractError (bad data, config or context), a file that cannot be
+    read or written, an engine module that cannot be imported. Anything else is a bug and
+    keeps its traceback.
+    """
+    try:
+        return int(main() or 0)
+    except ContractError as exc:
+        what = str(exc)
+    except ImportError as exc:
+        what = f"cannot import {exc.name or ''}: {exc}".replace(":  ", ": ")
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        what = f"{exc.filename}: {exc.strerror or exc}"
+    print(f"{prog}: error: {what}", file=sys.stderr, flush=True)
+    return 2
+
+
+def unwritable(folder: str | Path) -> str | None:
+    """Why results cannot be written under ``folder`` (one line), or None.
+
+    The folder may not exist yet: its nearest existing ancestor must be a writable folder.
+    Checked when the workflow is parsed, so a read-only results folder stops the run before
+    the first rule rather than as an error after it computed.
+    """
+    here = Path(folder).absolute()
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    if not here.is_dir():
+        return f"cannot write results under {folder}: {here} is a file, not a folder"
+    if not os.access(here, os.W_OK | os.X_OK):
+        return (f"cannot write results under {folder}: {here} is not writable "
+                "(run from a writable copy of the study folder)")
+    return None
 
 
 def config_error(config: dict, schema_path: str | Path) -> str | None:
@@ -101,6 +148,12 @@ def config_error(config: dict, schema_path: str | Path) -> str | None:
     import jsonschema
     import yaml
 
+    # JSON Schema's "number" admits NaN and infinity (YAML .nan, .inf), and every range
+    # check passes or fails silently on them: alpha .nan rejected every hypothesis.
+    bad = _non_finite(config)
+    if bad is not None:
+        key, value = bad
+        return f"config key {key}: {value} is not a finite number"
     schema = yaml.safe_load(Path(schema_path).read_text())
     validator = jsonschema.validators.validator_for(schema)(schema)
     error = jsonschema.exceptions.best_match(validator.iter_errors(config))
@@ -108,6 +161,50 @@ def config_error(config: dict, schema_path: str | Path) -> str | None:
         return None
     key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
     return f"config key {key}: {error.message}"
+
+
+def _non_finite(node: Any, path: str = "") -> tuple[str, float] | None:
+    """(dotted key, value) of the first NaN or infinite float in a config tree, or None."""
+    if isinstance(node, float) and not math.isfinite(node):
+        return path or "(top level)", node
+    items = node.items() if isinstance(node, dict) else (
+        enumerate(node) if isinstance(node, list) else ())
+    for k, v in items:
+        found = _non_finite(v, f"{path}.{k}" if path else str(k))
+        if found:
+            return found
+    return None
+
+
+def load_yaml_strict(path: str | Path) -> Any:
+    """Load a YAML file, refusing a key written twice in one mapping.
+
+    PyYAML keeps the last value silently; a study config with ``alpha`` twice would then
+    run with whichever came last. ContractError names the file, the key and both lines.
+    """
+    import yaml
+
+    class Strict(yaml.SafeLoader):
+        pass
+
+    def mapping(loader: Strict, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            line = key_node.start_mark.line + 1
+            if key in seen:
+                raise ContractError(
+                    f"{path}: key {key!r} is written twice (lines {seen[key]} and {line}); "
+                    "YAML would keep only the last"
+                )
+            seen[key] = line
+        return loader.construct_mapping(node, deep=deep)
+
+    Strict.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    try:
+        return yaml.load(Path(path).read_text(), Loader=Strict)  # noqa: S506 - SafeLoader
+    except yaml.YAMLError as exc:
+        raise ContractError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
 
 
 def validate_config(config: dict, schema_path: str | Path) -> None:

@@ -79,7 +79,24 @@ OUTCOMES: tuple[str, ...] = (
 
 TRAJECTORY_COLUMNS: tuple[str, ...] = (STAY_ID, TIME, *FEATURES, *DOSES)
 
-TWIN_STATUSES: tuple[str, ...] = ("ok", "init_failed", "irreversible", "timeout", "error")
+# "implausible": the twin answered, but a value breaks the trajectory contract's range
+# (FEATURE_TABLE lo/hi); set by the runner, never trusted from a twin. Counts as failed.
+TWIN_STATUSES: tuple[str, ...] = (
+    "ok", "init_failed", "irreversible", "timeout", "error", "implausible",
+)
+
+
+@dataclass(frozen=True)
+class TwinNodes:
+    """Twin runs in prefix-tree form: one row per (node = a_1:s, X_0).
+
+    values: (n_nodes, m, F) features at hour s = len(node) (NaN where the run
+    failed at or before hour s); x0: (m, F) real X_0 rows of the initial stays.
+    """
+
+    index: dict[tuple[int, ...], int]
+    values: np.ndarray
+    x0: np.ndarray
 
 
 class ContractError(ValueError):
@@ -184,3 +201,33 @@ def to_array(df: pd.DataFrame, columns: Iterable[str], t_max: int = T_MAX) -> np
     values = df[cols].to_numpy(dtype="float64")
     n = len(df) // (t_max + 1)
     return values.reshape(n, t_max + 1, len(cols))
+
+
+def mark_implausible(
+    features: np.ndarray, status: np.ndarray, message: np.ndarray
+) -> int:
+    """Fail, in place, every run whose twin returned a value outside its feature's range.
+
+    features: (n, t, len(FEATURES)) hourly values, NaN after a run's last hour; status,
+    message: (n,) object arrays. The range is the one every observed trajectory must lie in
+    (FEATURE_TABLE lo/hi, the same contract as :func:`validate_trajectories`), so a twin is
+    held to what the data it is compared with may contain. A run whose hour h has a finite
+    value outside the range (e.g. HR 1e300 or -500), or an infinite one, gets status
+    ``implausible``, a message naming hour, feature, value and range, and NaN from hour h
+    on (hours before it are kept, as for any failure). Returns the number of runs marked.
+    """
+    lo = np.array([f.lo for f in FEATURE_TABLE])
+    hi = np.array([f.hi for f in FEATURE_TABLE])
+    with np.errstate(invalid="ignore"):
+        bad = (features < lo) | (features > hi)  # NaN compares False: a missing hour is fine
+    runs = np.flatnonzero(bad.any(axis=(1, 2)))
+    for i in runs:
+        h, j = (int(v) for v in np.argwhere(bad[i])[0])
+        feat = FEATURE_TABLE[j]
+        status[i] = "implausible"
+        message[i] = (
+            f"hour {h + 1}: {feat.name} = {features[i, h, j]:g} {feat.unit} outside the "
+            f"plausible range [{feat.lo:g}, {feat.hi:g}]"
+        )
+        features[i, h:] = np.nan
+    return len(runs)

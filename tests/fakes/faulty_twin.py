@@ -1,11 +1,14 @@
 """A protocol twin for fault injection: ``python tests/fakes/faulty_twin.py --mode ...``.
 
-Good runs return a deterministic, prefix-consistent trajectory: for feature f
-at the end of hour h,
+Good runs return a deterministic, prefix-consistent trajectory: for a non-demographic
+feature f at the end of hour h,
 
-    x_h[f] = x0[f] + 0.5 h + 0.01 sum_{s<=h} iv_s + 10 sum_{s<=h} vaso_s + 0.001 (seed mod 97)
+    x_h[f] = x0[f] + 0.001 (0.5 h + 0.01 sum_{s<=h} iv_s + 10 sum_{s<=h} vaso_s
+                            + 0.001 (seed mod 97))
 
-(pure arithmetic so tests can check values exactly; see ``expected``).
+and age, sex, weight stay as in X_0 (pure arithmetic so tests can check values exactly;
+see ``expected``). The factor 0.001 keeps a run from an X_0 inside the trajectory
+contract's ranges inside them, so a study does not mark good runs ``implausible``.
 Faults are chosen per seed, so one study mixes good and bad runs
 deterministically. ``--mode MODE[:SELECTOR]`` may be repeated; SELECTOR is
 ``all`` (default), a comma list of seeds ``3,7,11``, or ``%K=R`` (seed mod K
@@ -25,6 +28,8 @@ equals R). The first matching mode wins. Per-run modes:
     error          status error with a message
     slow           sleep --delay seconds, then answer normally
     clamp          clamp HR to at most 110 and report the clamp
+    implausible    status ok, but HR = 1e300 in hour 2 (hour 1 if only one is asked)
+    negative       status ok, but HR = -500 in hour 2 (hour 1 if only one is asked)
     batch_short    in a simulate_batch answer, leave this run's result out (the
                    answer then has too few results); a plain simulate is answered
                    normally
@@ -58,8 +63,9 @@ from twinfalsify.schema import FEATURE_TABLE, FEATURES
 RUN_MODES = (
     "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
     "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
-    "batch_short",
+    "batch_short", "implausible", "negative",
 )
+DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello")
 
 
@@ -69,8 +75,9 @@ def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int) 
     for h, (d_iv, d_vaso) in enumerate(doses, start=1):
         iv += float(d_iv)
         vaso += float(d_vaso)
-        shift = 0.5 * h + 0.01 * iv + 10.0 * vaso + 0.001 * (seed % 97)
-        hours.append({f: float(x0[f]) + shift for f in FEATURES})
+        shift = 0.001 * (0.5 * h + 0.01 * iv + 10.0 * vaso + 0.001 * (seed % 97))
+        hours.append({f: float(x0[f]) + (0.0 if f in DEMOGRAPHICS else shift)
+                      for f in FEATURES})
     return hours
 
 
@@ -151,6 +158,8 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
         answer.update(status="init_failed", hours=[], message="patient rejected")
     elif mode == "error":
         answer.update(status="error", hours=[], message="engine error")
+    elif mode in ("implausible", "negative"):
+        hours[min(1, len(hours) - 1)]["HR"] = 1e300 if mode == "implausible" else -500.0
     elif mode == "clamp" and float(x0["HR"]) > 110:
         answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
         answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
@@ -169,6 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--irreversible-hour", type=int, default=2)
     parser.add_argument("--state-dir", type=Path, help="marker files for crash_once")
     parser.add_argument("--max-hours", type=int, default=None)
+    parser.add_argument("--log-requests", type=Path, default=None,
+                        help="append one line per simulate request to this file")
     parser.add_argument("--batch", type=int, default=None,
                         help="advertise capabilities.batch = N (runs per simulate_batch)")
     args = parser.parse_args(argv)
@@ -231,6 +242,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 send(batch_answer)
             continue
+        if msg["op"] == "simulate" and args.log_requests is not None:
+            with args.log_requests.open("a") as fh:
+                fh.write(f"{msg['seed']}\n")
         if msg["op"] != "simulate":
             send({"op": "error", "message": f"unknown op {msg['op']!r}"})
             continue

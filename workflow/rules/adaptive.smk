@@ -35,6 +35,7 @@ rule twin_shard_adaptive:
         runs=canon(config["twin_runs"]),
         testing=canon(config["testing"]),
         seed=config["seed"],
+        code=code("twin_adaptive_shard"),
     script:
         "../../scripts/twin_adaptive_shard.py"
 
@@ -71,6 +72,7 @@ rule tests_adaptive:
         runtime=30,
     params:
         testing=canon(config["testing"]),
+        code=code("twin_adaptive_tests"),
     script:
         "../../scripts/twin_adaptive_tests.py"
 

@@ -41,6 +41,8 @@ rule calibration_chunk:
     resources:
         mem_mb=3000,
         runtime=60,
+    params:
+        code=code("calibration_chunk"),
     script:
         "../../scripts/calibration_chunk.py"
 
@@ -90,5 +92,7 @@ rule calibration_report:
     resources:
         mem_mb=2000,
         runtime=10,
+    params:
+        code=code("calibration_report"),
     script:
         "../../scripts/calibration_report.py"

@@ -5,14 +5,30 @@ import sys
 
 from snakemake.utils import validate
 
-sys.path.insert(0, str(Path(workflow.basedir) / "src"))
-from twinfalsify.io import config_error  # noqa: E402
+SRC = Path(workflow.basedir) / "src"
+sys.path.insert(0, str(SRC))
+from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
+from twinfalsify.provenance import code_fingerprint  # noqa: E402
+from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
+from twinfalsify.schema import ContractError  # noqa: E402
+from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E402
 
-# One line naming the key (Snakemake's own message prints the whole schema), then
-# Snakemake's validate for the schema's defaults.
-_problem = config_error(
-    config, Path(workflow.basedir) / "workflow/schemas/config.schema.yaml"
-)
+
+# Everything that can be checked from the config alone is checked here, at parse time,
+# before any job runs, in one line naming the key (Snakemake's own message prints the whole
+# schema), then Snakemake's validate for the schema's defaults.
+def _config_problem():
+    for configfile in workflow.configfiles:
+        try:
+            load_yaml_strict(configfile)  # a key written twice: YAML keeps the last
+        except ContractError as exc:
+            return str(exc)
+    return study_config_error(
+        config, Path(workflow.basedir) / "workflow/schemas/config.schema.yaml"
+    )
+
+
+_problem = _config_problem()
 if _problem:
     raise ValueError(f"invalid config: {_problem}")
 validate(config, schema="../schemas/config.schema.yaml")
@@ -20,8 +36,26 @@ validate(config, schema="../schemas/config.schema.yaml")
 STUDY = config["study"]
 R = f"results/{STUDY}"
 TWINS = list(config["twins"])
-N_SHARDS = int(config["twin_runs"].get("n_shards", 4))
+N_SHARDS, _shard_warning = shard_count(config)
+if _shard_warning:
+    print(f"WARNING: {_shard_warning}", file=sys.stderr)
 LOGS = f"{R}/logs"
+
+
+# a results folder that cannot be written stops the run now, not after the first rules
+if not getattr(workflow, "dryrun", False) and (_unwritable := unwritable(R)):
+    raise ValueError(_unwritable)
+
+
+def code(script, extra=()):
+    """Fingerprint of the library modules ``scripts/<script>.py`` imports (transitively).
+
+    A params value: Snakemake reruns a job whose params changed, so a change in library
+    code reruns exactly the rules whose scripts reach it (twinfalsify.provenance).
+    """
+    return code_fingerprint(
+        Path(workflow.basedir) / "scripts" / f"{script}.py", SRC, extra
+    )
 
 
 wildcard_constraints:
@@ -80,6 +114,23 @@ SECONDS_PER_TWIN_HOUR = {
     "fitted": 0.01,
     "command": 150.0,
 }
+
+
+def shard_spec(wildcards):
+    """The twin's spec without its execution-only keys, as a params value (canon)."""
+    spec = config["twins"][wildcards.twin]
+    return canon({k: v for k, v in spec.items() if k not in EXECUTION_KEYS})
+
+
+def served_modules(twin):
+    """Library modules a twin runs as a subprocess (``python -m twinfalsify.X``): they are
+    not imported by the rule script, so they are named for its code fingerprint."""
+    spec = config["twins"][twin]
+    if spec.get("protocol") and spec["kind"] != "command":
+        return ["twinfalsify.runs.serve"]
+    command = spec.get("command") or []
+    words = command.split() if isinstance(command, str) else command
+    return [w for w in words if w.startswith("twinfalsify.")]
 
 
 def twin_spec(wildcards):

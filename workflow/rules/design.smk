@@ -21,6 +21,7 @@ rule design:
         runtime=10,
     params:
         design=canon(config["design"]),
+        code=code("design"),
     script:
         "../../scripts/design.py"
 
@@ -43,5 +44,7 @@ rule observational_side:
     resources:
         mem_mb=6000,
         runtime=30,
+    params:
+        code=code("observational_side"),
     script:
         "../../scripts/observational_side.py"

@@ -15,6 +15,8 @@ rule rejections_table:
     resources:
         mem_mb=2000,
         runtime=5,
+    params:
+        code=code("rejections_table"),
     script:
         "../../scripts/rejections_table.py"
 
@@ -37,6 +39,8 @@ rule figure_pvalues:
     resources:
         mem_mb=2000,
         runtime=5,
+    params:
+        code=code("figure_pvalues_methods"),
     script:
         "../../scripts/figure_pvalues_methods.py"
 
@@ -76,6 +80,8 @@ rule table_rejections_tex:
     resources:
         mem_mb=1000,
         runtime=5,
+    params:
+        code=code("table_rejections_tex"),
     script:
         "../../scripts/table_rejections_tex.py"
 
@@ -97,6 +103,8 @@ rule table_action_space:
     resources:
         mem_mb=1000,
         runtime=5,
+    params:
+        code=code("table_action_space"),
     script:
         "../../scripts/table_action_space.py"
 
@@ -124,6 +132,7 @@ rule figure_longitudinal:
         figures=canon(config.get("figures", {})),
         testing=canon(config["testing"]),
         quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
+        code=code("figure_longitudinal"),
     script:
         "../../scripts/figure_longitudinal.py"
 
@@ -149,6 +158,7 @@ rule figure_histograms:
     params:
         figures=canon(config.get("figures", {})),
         testing=canon(config["testing"]),
+        code=code("figure_histograms"),
     script:
         "../../scripts/figure_histograms.py"
 
@@ -171,6 +181,8 @@ rule figure_sample_sizes:
     resources:
         mem_mb=2000,
         runtime=5,
+    params:
+        code=code("figure_sample_sizes"),
     script:
         "../../scripts/figure_sample_sizes.py"
 
@@ -193,6 +205,8 @@ rule figure_propensity:
     resources:
         mem_mb=2000,
         runtime=5,
+    params:
+        code=code("figure_propensity"),
     script:
         "../../scripts/figure_propensity.py"
 
@@ -220,6 +234,7 @@ rule figure_sensitivity:
         figures=canon(config.get("figures", {})),
         testing=canon(config["testing"]),
         seed=config["seed"],
+        code=code("figure_sensitivity"),
     script:
         "../../scripts/figure_sensitivity.py"
 
@@ -246,6 +261,7 @@ rule figure_confounding:
         figures=canon(config.get("figures", {})),
         source=canon(config["source"]),
         seed=config["seed"],
+        code=code("figure_confounding"),
     script:
         "../../scripts/figure_confounding.py"
 
@@ -274,5 +290,6 @@ rule summary:
     params:
         study=STUDY,
         twins=TWINS,
+        code=code("summary"),
     script:
         "../../scripts/summary.py"

@@ -25,6 +25,7 @@ rule trajectories:
         source=canon(config["source"]),
         data=mimic3_data(),
         seed=config["seed"],
+        code=code("trajectories"),
     script:
         "../../scripts/trajectories.py"
 
@@ -45,5 +46,6 @@ rule split:
     params:
         d0_fraction=config["split"]["d0_fraction"],
         seed=config["seed"],
+        code=code("split"),
     script:
         "../../scripts/split.py"

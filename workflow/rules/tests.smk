@@ -21,5 +21,6 @@ rule tests:
     params:
         testing=canon(config["testing"]),
         seed=config["seed"],
+        code=code("tests"),
     script:
         "../../scripts/tests.py"

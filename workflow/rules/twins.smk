@@ -17,6 +17,7 @@ rule twin_plan:
         runs=canon(config["twin_runs"]),
         seed=config["seed"],
         source=canon(config["source"]),
+        code=code("twin_plan"),
     script:
         "../../scripts/twin_plan.py"
 
@@ -42,8 +43,12 @@ rule twin_shard:
     resources:
         mem_mb=shard_mem_mb,
         runtime=shard_runtime,
+    # what a run computes, not how it is run: changing workers, timeout_s, retries,
+    # batch_size, fail_fast_runs or max_restarts reruns no shard (the script reads them
+    # from the config); a served or command twin's library modules are in its code
     params:
-        spec=lambda w: canon(config["twins"][w.twin]),
+        spec=shard_spec,
+        code=lambda w: code("twin_shard", served_modules(w.twin)),
     script:
         "../../scripts/twin_shard.py"
 
@@ -64,5 +69,7 @@ rule twin_runs:
     resources:
         mem_mb=6000,
         runtime=20,
+    params:
+        code=code("twin_runs"),
     script:
         "../../scripts/twin_runs.py"

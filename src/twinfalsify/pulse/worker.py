@@ -433,4 +433,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from twinfalsify.io import cli_main
+
+    sys.exit(cli_main(main, "twinfalsify.pulse.worker"))  # bad input: one line, exit 2

@@ -14,6 +14,7 @@ across shards.
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import time
 from collections.abc import Iterable
@@ -23,11 +24,11 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import noise
-from twinfalsify.bounds import TwinNodes
 from twinfalsify.design import ActionBins
-from twinfalsify.schema import FEATURES, STAY_ID, ContractError
+from twinfalsify.schema import FEATURES, STAY_ID, ContractError, TwinNodes, mark_implausible
 from twinfalsify.twins.base import Twin
 
+log = logging.getLogger("twinfalsify")
 NODE_COLUMNS = ("node", "t", "init_stay_id", "status", "message", "clamped", *FEATURES)
 
 
@@ -83,6 +84,12 @@ def plan_twin_runs(
 ) -> TwinPlan:
     stays = np.sort(np.asarray(d_stay_ids, dtype=np.int64))
     m = len(stays) if not runs_per_sequence else min(int(runs_per_sequence), len(stays))
+    if runs_per_sequence and int(runs_per_sequence) > len(stays):
+        log.warning(
+            "twin_runs.runs_per_sequence: %d asked, but D has only %d stays (X_0 are drawn "
+            "without replacement): using %d runs per sequence",
+            int(runs_per_sequence), len(stays), len(stays),
+        )
     x0 = np.random.default_rng(seed).permutation(stays)[:m]
     seqs = {tuple(int(a) for a in s) for s in hyps["actions"].tolist()}
     nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
@@ -116,6 +123,17 @@ def x0_frame(d: pd.DataFrame, stay_ids: list[int]) -> pd.DataFrame:
     return first.loc[stay_ids, list(FEATURES)].reset_index()
 
 
+def _plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(features, status, message) of a SimResult with every run that returned a value
+    outside the trajectory contract's ranges failed as ``implausible``
+    (schema.mark_implausible): the one place every stored run of every twin passes."""
+    feats = np.array(res.features, dtype=float)
+    status = np.array(res.status, dtype=object)
+    message = np.array(res.message, dtype=object)
+    mark_implausible(feats, status, message)
+    return feats, status, message
+
+
 def _simulate_leaves(
     twin: Twin, leaves: list[str], x0: pd.DataFrame, seeds: np.ndarray, actions: ActionBins,
     log,
@@ -144,18 +162,19 @@ def _simulate_leaves(
             raise ContractError(
                 f"twin {twin.name}: simulate returned features of shape {res.features.shape}"
             )
+        feats, status, message = _plausible(res)
         out = []
         for j, seq in enumerate(seqs):
             rows = slice(j * m, (j + 1) * m)
-            out.append((res.features[rows, : len(seq)], res.status[rows], res.message[rows],
-                        res.clamped[rows]))
+            out.append((feats[rows, : len(seq)], status[rows], message[rows], res.clamped[rows]))
         return out
     out = []
     start = time.monotonic()
     for i, seq in enumerate(seqs, 1):
         doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
         res = twin.simulate(x0, doses, seeds)
-        out.append((res.features, res.status, res.message, res.clamped))
+        feats, status, message = _plausible(res)
+        out.append((feats, status, message, res.clamped))
         rate = i * m / max(time.monotonic() - start, 1e-9)
         print(
             f"[twin {twin.name}] leaf {i}/{len(seqs)} ({leaves[i - 1]}): {m} runs, "

@@ -51,7 +51,10 @@ def decode(line: str) -> dict[str, Any]:
     try:
         msg = json.loads(line)
     except json.JSONDecodeError as exc:
-        raise ProtocolError(f"not JSON: {line[:200]!r} ({exc.msg})") from None
+        raise ProtocolError(
+            f"not JSON: stdout must carry only protocol JSON (logs go to stderr): got "
+            f"{line[:200]!r} ({exc.msg})"
+        ) from None
     if not isinstance(msg, dict) or "op" not in msg:
         raise ProtocolError(f"not a protocol message (no 'op'): {line[:200]!r}")
     return msg

@@ -18,11 +18,13 @@ import pandas as pd
 
 from twinfalsify.runs.runner import (
     DEFAULT_BATCH_SIZE,
+    DEFAULT_FAIL_FAST_RUNS,
+    DEFAULT_MAX_RESTARTS,
     _Pool,
     resolve_command,
     simulate_via_protocol,
 )
-from twinfalsify.schema import FEATURES
+from twinfalsify.schema import FEATURES, ContractError
 from twinfalsify.twins.base import SimResult
 
 
@@ -40,6 +42,8 @@ class ProtocolTwin:
         env: Mapping[str, str] | None = None,
         progress: bool = True,
         batch_size: int = DEFAULT_BATCH_SIZE,
+        fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
+        max_restarts: int = DEFAULT_MAX_RESTARTS,
     ) -> None:
         self.name = name
         self.command = list(command)
@@ -47,6 +51,7 @@ class ProtocolTwin:
         self.env = dict(env) if env else None
         self.progress = progress
         self.batch_size = batch_size
+        self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
 
     def hello(self) -> dict[str, Any]:
         """Start one worker, return its (validated) hello answer, shut it down."""
@@ -64,8 +69,12 @@ class ProtocolTwin:
         return json.loads(json.dumps(hello))
 
     def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
-        return simulate_via_protocol(
-            self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
-            retries=self.retries, progress=self.progress, env=self.env,
-            batch_size=self.batch_size,
-        )
+        try:
+            return simulate_via_protocol(
+                self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
+                retries=self.retries, progress=self.progress, env=self.env,
+                batch_size=self.batch_size, fail_fast_runs=self.fail_fast_runs,
+                max_restarts=self.max_restarts,
+            )
+        except ContractError as exc:  # name the twin as the config does
+            raise ContractError(f"twins.{self.name}: {exc}") from None

@@ -11,6 +11,7 @@ from typing import Any
 
 import pandas as pd
 
+from twinfalsify.runs.runner import DEFAULT_FAIL_FAST_RUNS, DEFAULT_MAX_RESTARTS
 from twinfalsify.schema import ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import SyntheticWorld
 from twinfalsify.twins.base import Twin
@@ -18,7 +19,12 @@ from twinfalsify.twins.base import Twin
 BUILTIN_KINDS = ("oracle", "biased", "fitted")
 KINDS = (*BUILTIN_KINDS, "command")
 # how, not what, to run
-RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size")
+RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size",
+               "fail_fast_runs", "max_restarts")
+# Runner keys that cannot change a finished run's numbers: the workflow keeps them out of
+# a shard's params, so changing them reruns no shard (README "What reruns").
+EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_runs",
+                  "max_restarts")
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
@@ -31,17 +37,61 @@ def _load_context(context: dict[str, Any] | Path | str | None) -> dict[str, Any]
     path = path / "twin_context.json" if path.is_dir() else path
     if not path.exists():
         raise ContractError(f"twin context {path} does not exist")
-    return json.loads(path.read_text())
+    try:
+        ctx = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ContractError(f"twin context {path}: not JSON ({exc.msg})") from None
+    # paths in the context are relative to its folder, so a moved or copied study stays valid
+    if ctx.get("d0") and not Path(ctx["d0"]).is_absolute():
+        ctx["d0"] = str(path.parent / ctx["d0"])
+    return ctx
 
 
 def _world(name: str, ctx: dict[str, Any]) -> SyntheticWorld:
     source = ctx.get("source", {})
+    if not ctx:
+        raise ContractError(
+            f"twins.{name}: kind oracle/biased simulate the study's synthetic world: give its "
+            "twin context (--context results/<study>/twin_context.json)"
+        )
     if source.get("kind") != "synthetic":
         raise ContractError(
             f"twins.{name}: kind oracle/biased simulate the synthetic world and need "
             f"source.kind: synthetic (this study's source is {source.get('kind')!r})"
         )
     return SyntheticWorld.from_config(source.get("synthetic"))
+
+
+def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
+    """Raise ContractError (message starts ``twins.<name>``) for a spec that cannot build.
+
+    What can be known from the config alone, before any data exists: the kind, the
+    features of ``shift``/``scale`` and doses of ``dose_effect`` (checked by the builtin
+    twin's own constructor, on a default world), a command for kind command, and a
+    synthetic ``source`` for kinds that simulate the synthetic world.
+    """
+    kind = spec.get("kind")
+    if kind not in KINDS:
+        raise ContractError(f"twins.{name}.kind: unknown kind {kind!r}; choose one of "
+                            f"{', '.join(KINDS)}")
+    if kind in ("oracle", "biased") and source.get("kind") != "synthetic":
+        raise ContractError(
+            f"twins.{name}: kind {kind} simulates the synthetic world and needs "
+            f"source.kind: synthetic (this study's source is {source.get('kind')!r})"
+        )
+    if kind == "biased":
+        from twinfalsify.twins.builtin import BiasedTwin
+
+        BiasedTwin(SyntheticWorld.from_config(source.get("synthetic")),
+                   dose_effect=dict(spec.get("dose_effect", {})),
+                   shift=dict(spec.get("shift", {})), scale=dict(spec.get("scale", {})),
+                   name=name)
+    elif any(spec.get(k) for k in ("shift", "scale", "dose_effect")):
+        key = next(k for k in ("shift", "scale", "dose_effect") if spec.get(k))
+        raise ContractError(f"twins.{name}.{key}: only kind biased takes {key} "
+                            f"(this twin is kind {kind})")
+    if kind == "command" and not spec.get("command"):
+        raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
 
 
 def make_twin(
@@ -102,6 +152,8 @@ def _runner_options(spec: dict[str, Any], timeout_s: float) -> dict[str, Any]:
         "retries": int(spec.get("retries", 2)),
         "env": spec.get("env"),
         "batch_size": int(spec.get("batch_size", 500)),
+        "fail_fast_runs": int(spec.get("fail_fast_runs", DEFAULT_FAIL_FAST_RUNS)),
+        "max_restarts": int(spec.get("max_restarts", DEFAULT_MAX_RESTARTS)),
     }
 
 

@@ -63,6 +63,12 @@ STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): star
 # (interpreter, engine libraries) is not simulation and must not eat the run's limit
 SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
 STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
+DEFAULT_FAIL_FAST_RUNS = 20  # circuit breaker: stop when the first K runs all failed ...
+DEFAULT_MAX_RESTARTS = 10  # ... or workers were restarted R times before any run was ok:
+# a twin broken for every run (e.g. a log line on stdout) would otherwise fail all of a
+# shard's runs, restarting a worker for each, at Pulse prices days of wall time. Both
+# checks end with the first ok run: after it, failures are the twin's answers about hard
+# X_0 (whose runs come in a row, grouped by seed) and are recorded run by run.
 DEFAULT_BATCH_SIZE = 500  # runs per simulate_batch message (when the twin allows batches):
 # large enough that the per-message round trip (~ms) is negligible per run, small enough
 # that a batch's JSON (~1 kB per run) and a retry after a failed batch stay cheap
@@ -349,8 +355,15 @@ class _Pool:
         retries: int,
         features: Sequence[str],
         batch_size: int = DEFAULT_BATCH_SIZE,
+        fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
+        max_restarts: int = DEFAULT_MAX_RESTARTS,
     ) -> None:
         self.command, self.env = command, env
+        self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
+        self.settled = 0  # runs recorded so far, any status
+        self.any_ok = False
+        self.restarts = 0  # worker restarts before the first ok run
+        self.first_failure = ""  # "status: message" of the first failed run
         self.batch_size = batch_size
         # Runs a thread takes from the queue at a time: 1 until a hello says
         # how large a batch the twin accepts (every worker runs the same command).
@@ -384,6 +397,14 @@ class _Pool:
             raise _WorkerDied("pool is stopping")
         first = slot not in self.started
         self.started.add(slot)
+        if not first:
+            with self.lock:
+                self.restarts += 0 if self.any_ok else 1
+                tripped = (self.max_restarts and not self.any_ok
+                           and self.restarts > self.max_restarts)
+            if tripped:
+                self._trip(f"workers restarted {self.max_restarts} times before any run "
+                           "was ok")
         worker = _Worker(self.command, self.env)
         self.workers[slot] = worker
         where = f"twin {shlex.join(self.command)}"
@@ -428,6 +449,14 @@ class _Pool:
             worker.kill()
 
     # -- runs ------------------------------------------------------------
+    def _trip(self, why: str) -> None:
+        """Circuit breaker: stop the pool with one line naming command, reason, first failure."""
+        first = self.first_failure or "none recorded"
+        raise ContractError(
+            f"twin {shlex.join(self.command)}: stopped, {why} (first failure: {first}); "
+            "fix the twin, or raise fail_fast_runs / max_restarts in its config"
+        )
+
     def _record(self, i: int, status: str, message: str, values: np.ndarray | None,
                 clamped: str = "{}") -> None:
         if values is not None and len(values):
@@ -437,6 +466,15 @@ class _Pool:
         self.clamped[i] = clamped
         with self.lock:
             self.counts[status] += 1
+            self.settled += 1
+            if status == "ok":
+                self.any_ok = True
+            elif not self.first_failure:
+                self.first_failure = f"{status}: {self.message[i]}"
+            tripped = (self.fail_fast_runs and not self.any_ok
+                       and self.settled >= self.fail_fast_runs)
+        if tripped:
+            self._trip(f"its first {self.fail_fast_runs} runs all failed")
 
     def _request(self, i: int, request_id: str) -> dict[str, Any]:
         hours = int(self.hours[i])
@@ -599,6 +637,8 @@ def simulate_via_protocol(
     env: Mapping[str, str] | None = None,
     features: Sequence[str] = FEATURES,
     batch_size: int = DEFAULT_BATCH_SIZE,
+    fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
+    max_restarts: int = DEFAULT_MAX_RESTARTS,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -619,7 +659,17 @@ def simulate_via_protocol(
     batch_size: most runs per simulate_batch message, used only when the
     twin's hello advertises ``capabilities.batch`` > 1 (then a message holds
     min(batch, batch_size) runs; 1 = never batch). Results do not depend on it.
+
+    Circuit breaker (ContractError naming the command, the reason and the first failed
+    run's status and message): the first ``fail_fast_runs`` recorded runs all failed, or
+    workers had to be restarted more than ``max_restarts`` times before any run was ok;
+    0 turns a check off. After the first ok run neither check acts. (Values are checked
+    against the trajectory contract's ranges where a study stores runs,
+    ``runs.plan.run_shard``, not here.)
     """
+    for key, value in (("fail_fast_runs", fail_fast_runs), ("max_restarts", max_restarts)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+            raise ContractError(f"{key} must be an integer >= 0, got {value!r}")
     if workers < 1:
         raise ContractError(f"workers must be >= 1, got {workers}")
     if retries < 0:
@@ -637,7 +687,7 @@ def simulate_via_protocol(
         return SimResult(empty_features(0, t), np.full(0, "", dtype=object))
 
     pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
-                 int(batch_size))
+                 int(batch_size), int(fail_fast_runs), int(max_restarts))
     groups = plan_groups(seeds, doses)
     pool.tasks.extend(groups)
     n_threads = min(workers, len(groups))

@@ -27,7 +27,7 @@ import pandas as pd
 
 from twinfalsify import __version__
 from twinfalsify.runs.protocol import serve_forever
-from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES
+from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES, ContractError
 from twinfalsify.twins.base import Twin
 
 BATCH_MAX = 1000  # runs per simulate_batch message a served builtin twin accepts
@@ -175,10 +175,15 @@ def handlers(
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="twinfalsify.runs.serve", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("name", help="builtin twin name (see twinfalsify.runs.registry)")
-    parser.add_argument("--spec", default="{}", help="twin spec as a JSON object")
+    parser.add_argument("name", help="twin name; also its kind (oracle, biased, fitted) "
+                        "unless --spec gives one")
+    parser.add_argument("--spec", default="{}",
+                        help='twin spec as a JSON object, e.g. \'{"kind": "biased", '
+                             '"shift": {"HR": 15}}\' (default: {"kind": NAME})')
     parser.add_argument("--context", type=Path, default=None,
-                        help="directory with the study's files a fitted twin needs")
+                        help="the study's twin_context.json, or the results/<study>/ folder "
+                             "holding it (written by rule twin_plan): the synthetic world's "
+                             "config for oracle/biased, the D0 table for fitted")
     args = parser.parse_args(argv)
     try:
         spec = json.loads(args.spec)
@@ -193,7 +198,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     # needed in the served process.
     from twinfalsify.runs.registry import make_twin
 
-    twin = make_twin(args.name, spec, args.context)
+    spec.setdefault("kind", args.name)  # `serve oracle` means the oracle
+    spec.pop("protocol", None)  # this process IS the served twin
+    try:
+        twin = make_twin(args.name, spec, args.context)
+    except ContractError as exc:  # bad name, spec or context: one line, not a traceback
+        sys.stdout = protocol_out
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")
     print(f"serving twin {twin.name!r} (protocol v1, batch {BATCH_MAX})", file=sys.stderr,
           flush=True)
     hello, simulate = handlers(twin, batch=BATCH_MAX)

@@ -1,0 +1,113 @@
+"""The library's import graph, and code fingerprints of what a rule script depends on.
+
+One parser serves two uses: tests/test_layout.py checks the graph (no cycle, no upward
+import), and the workflow (common.smk) gives every rule a ``code`` param = the fingerprint
+of the library modules its script imports, directly or transitively. Snakemake reruns a
+job whose params changed, so a fix in ``bounds.py`` reruns exactly the rules whose scripts
+reach ``bounds.py`` and nothing else (Snakemake already watches the script file itself).
+
+Every ``import`` counts, including those inside functions (a lazy import is still a
+dependency). A module a script only starts as a subprocess by name (``python -m
+twinfalsify.runs.serve``) is not an import: a rule names such modules as ``extra``.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+from collections.abc import Iterable
+from functools import lru_cache
+from pathlib import Path
+
+PACKAGE = "twinfalsify"
+
+
+def module_name(path: Path, src: Path) -> str:
+    """Dotted module name of a file under ``src`` (a package's ``__init__`` = the package)."""
+    parts = list(path.relative_to(src).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def modules(src: Path) -> dict[str, Path]:
+    """Every module of the library under ``src``: dotted name -> file."""
+    return {module_name(p, src): p for p in sorted((src / PACKAGE).rglob("*.py"))}
+
+
+def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
+    """Library modules that the file ``path`` (module ``name``) imports, at any depth.
+
+    Absolute and relative imports; ``from pkg import mod`` counts as importing ``pkg.mod``
+    when that is a module. ``name`` may be any label for a file outside the package (a rule
+    script); it is only used to resolve relative imports and to drop self-imports.
+    """
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base
+                       for a in node.names]
+        else:
+            continue
+        for t in targets:
+            while t and t not in known:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                out.add(t)
+    return out
+
+
+def graph(src: Path) -> dict[str, set[str]]:
+    """Import graph of the library: module -> library modules it imports."""
+    mods = modules(src)
+    known = set(mods)
+    return {name: imports_of(name, path, known) for name, path in mods.items()}
+
+
+def closure(starts: Iterable[str], g: dict[str, set[str]]) -> set[str]:
+    """Every module reachable from ``starts`` (included), plus the packages they live in
+    (importing ``a.b.c`` runs ``a/__init__`` and ``a/b/__init__`` first)."""
+    seen: set[str] = set()
+    todo = list(starts)
+    while todo:
+        m = todo.pop()
+        if m in seen or m not in g:
+            continue
+        seen.add(m)
+        parts = m.split(".")
+        todo.extend(".".join(parts[:k]) for k in range(1, len(parts)))
+        todo.extend(g[m])
+    return seen
+
+
+@lru_cache(maxsize=8)
+def _graph_cached(src: str) -> dict[str, set[str]]:
+    return graph(Path(src))
+
+
+def script_modules(script: str | Path, src: str | Path, extra: Iterable[str] = ()) -> set[str]:
+    """Library modules a rule script depends on: its imports' closure, and ``extra``'s."""
+    g = _graph_cached(str(Path(src).resolve()))
+    direct = imports_of("__script__", Path(script), set(g))
+    return closure([*direct, *extra], g)
+
+
+def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] = ()) -> str:
+    """SHA-256 (16 hex digits) over the names and bytes of :func:`script_modules`.
+
+    Only what Python executes counts: the fingerprint is of source text, so an edit to a
+    comment also changes it (cheap to compute, never misses a change).
+    """
+    src = Path(src).resolve()
+    mods = modules(src)
+    h = hashlib.sha256()
+    for name in sorted(script_modules(script, src, extra)):
+        h.update(name.encode() + b"\0" + mods[name].read_bytes() + b"\0")
+    return h.hexdigest()[:16]

@@ -1,0 +1,455 @@
+"""Fail fast, flag implausible values, never leave a stale result (issue 16).
+
+- the circuit breaker stops a twin that fails every run (a log line on stdout, a crash)
+  within ``fail_fast_runs`` runs / ``max_restarts`` restarts, in one line naming the command
+  and the first failure;
+- a value outside the trajectory contract's range is stored as status ``implausible``
+  (counts as failed), for protocol twins and in-process twins alike;
+- duplicated YAML keys, too many shards, too many runs per sequence are named;
+- the code fingerprint of a rule covers exactly the library modules its script reaches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from fakes import FAULTY_TWIN
+from test_bad_inputs import ENV, ROOT, _inputs
+
+from twinfalsify import provenance
+from twinfalsify.io import load_yaml_strict
+from twinfalsify.runs.plan import TwinPlan, run_shard
+from twinfalsify.runs.runner import simulate_via_protocol
+from twinfalsify.schema import FEATURE_BY_NAME, FEATURES, ContractError, mark_implausible
+from twinfalsify.studyconfig import N_ACTIONS, shard_count
+from twinfalsify.twins.base import SimResult
+
+HR = FEATURES.index("HR")
+
+
+def _many(n: int, t: int = 2):
+    rng = np.random.default_rng(1)
+    x0 = pd.DataFrame({f: rng.uniform(50, 100, n).round(3) for f in FEATURES})
+    x0["sex"] = 1.0
+    return x0, np.zeros((n, t, 2)), np.arange(100, 100 + n, dtype=np.uint64)
+
+
+# ---- circuit breaker ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_stdout_logging_twin_stops_within_k_runs(tmp_path, workers):
+    """A twin that logs to stdout fails every run: the shard stops after K runs, not n."""
+    log = tmp_path / "requests.log"
+    k, n = 8, 200
+    cmd = [*FAULTY_TWIN, "--mode=garbage", f"--log-requests={log}"]
+    with pytest.raises(ContractError) as err:
+        simulate_via_protocol(cmd, *_many(n), env=ENV, workers=workers, retries=2,
+                              fail_fast_runs=k, progress=False)
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert f"its first {k} runs all failed" in msg
+    assert "faulty_twin.py" in msg and "--mode=garbage" in msg  # the command
+    assert "stdout must carry only protocol JSON" in msg and "log line on stdout" in msg
+    asked = len(log.read_text().splitlines())
+    assert k <= asked <= k + workers, asked  # at most one run in flight per other worker
+
+
+def test_crashing_twin_stops_after_max_restarts(tmp_path):
+    log = tmp_path / "requests.log"
+    cmd = [*FAULTY_TWIN, "--mode=crash", f"--log-requests={log}"]
+    with pytest.raises(ContractError) as err:
+        simulate_via_protocol(cmd, *_many(100), env=ENV, retries=2, fail_fast_runs=0,
+                              max_restarts=5, progress=False)
+    msg = str(err.value)
+    assert "workers restarted 5 times before any run was ok" in msg
+    assert "first failure: error: worker exited with code 3" in msg
+    # 1 start + 5 restarts answered; the 6th restart trips before its request
+    assert len(log.read_text().splitlines()) == 6
+
+
+def test_breaker_leaves_a_partly_failing_twin_alone():
+    """Failures mixed with ok runs (even more than K of them) never trip the breaker."""
+    # a hard X_0 after the first ok run: all its runs crash in a row, far more restarts
+    # than max_restarts, and each run is recorded (the breaker only guards the start)
+    x0, doses, seeds = _many(30)
+    crash = ",".join(str(s) for s in seeds[5:20])
+    res = simulate_via_protocol([*FAULTY_TWIN, f"--mode=crash:{crash}"], x0, doses, seeds,
+                                env=ENV, retries=1, fail_fast_runs=3, max_restarts=2,
+                                progress=False)
+    assert (res.status == "error").sum() == 15 and (res.status == "ok").sum() == 15
+    res = simulate_via_protocol([*FAULTY_TWIN, "--mode=error:%4=1", "--mode=error:%4=2"],
+                                *_many(60), env=ENV, retries=0, fail_fast_runs=5,
+                                max_restarts=1, progress=False)
+    failed = (res.status != "ok").sum()
+    assert failed == 30 and (res.status == "ok").sum() == 30
+
+
+def test_breaker_off_with_zero_records_every_failure():
+    res = simulate_via_protocol([*FAULTY_TWIN, "--mode=error"], *_many(30), env=ENV,
+                                retries=0, fail_fast_runs=0, progress=False)
+    assert list(set(res.status)) == ["error"] and len(res.status) == 30
+
+
+@pytest.mark.parametrize("key", ["fail_fast_runs", "max_restarts"])
+def test_breaker_options_are_checked(key):
+    with pytest.raises(ContractError, match=f"{key} must be an integer >= 0, got -1"):
+        simulate_via_protocol([*FAULTY_TWIN], *_inputs(), env=ENV, progress=False,
+                              **{key: -1})
+
+
+# ---- implausible values -------------------------------------------------------------------
+
+
+def _study_bits(n: int = 6):
+    """X_0 from the synthetic world (inside the contract), a plan with one 3-hour leaf."""
+    from twinfalsify.design import ActionBins
+    from twinfalsify.sources.synthetic import generate
+
+    d = generate({"n_stays": 40}, seed=3)
+    x0 = d[d.t == 0].iloc[:n][["stay_id", *FEATURES]].reset_index(drop=True)
+    ids = [int(s) for s in x0.stay_id]
+    plan = TwinPlan(x0_stay_ids=ids, seed=0, shards=[["1-2-3"]], nodes=["1", "1-2", "1-2-3"])
+    actions = ActionBins(iv_edges=(1.0, 2.0, 3.0), vaso_edges=(0.1, 0.2, 0.3),
+                         iv_medians=(0.0, 1.0, 2.0, 3.0, 4.0),
+                         vaso_medians=(0.0, 0.1, 0.2, 0.3, 0.4))
+    return x0, plan, actions
+
+
+@pytest.mark.parametrize(("mode", "shown"), [("implausible", "1e+300"), ("negative", "-500")])
+def test_protocol_twin_value_outside_contract_is_implausible(mode, shown):
+    """Served over the protocol: runs whose twin gave HR 1e300 / -500 at hour 2 are
+    stored as implausible from node 1-2 on; node 1 (hour 1) and the other runs stay ok."""
+    from twinfalsify.runs.protocol_twin import ProtocolTwin
+
+    x0, plan, actions = _study_bits()
+    seeds = plan.run_seeds()
+    twin = ProtocolTwin("faulty", [*FAULTY_TWIN, f"--mode={mode}:%2=0"], env=ENV,
+                        progress=False, retries=0)
+    runs = run_shard(twin, plan, 0, x0, actions, log=open("/dev/null", "w"))
+    spoiled = {int(s) for s, seed in zip(plan.x0_stay_ids, seeds, strict=True) if seed % 2 == 0}
+    assert 0 < len(spoiled) < len(seeds)
+    for row in runs.itertuples():
+        if row.init_stay_id in spoiled and row.t >= 2:
+            assert row.status == "implausible" and np.isnan(row.HR)
+            assert row.message == f"hour 2: HR = {shown} /min outside the plausible range [0, 300]"
+        else:
+            assert row.status == "ok" and np.isfinite(row.HR), row
+
+
+def test_mark_implausible_agrees_with_the_contract_brute_force():
+    rng = np.random.default_rng(5)
+    n, t = 400, 4
+    lo = np.array([FEATURE_BY_NAME[f].lo for f in FEATURES])
+    hi = np.array([FEATURE_BY_NAME[f].hi for f in FEATURES])
+    feats = rng.uniform(lo, hi, (n, t, len(FEATURES)))
+    # spoil 1 % of cells: below, above, infinite; and end some runs early with NaN
+    cells = rng.random(feats.shape) < 0.01
+    feats[cells] = rng.choice([-1e9, 1e9, np.inf, -np.inf], cells.sum())
+    feats[rng.random(n) < 0.2, 3] = np.nan
+    status = np.full(n, "ok", dtype=object)
+    message = np.full(n, "", dtype=object)
+    before = feats.copy()
+    marked = mark_implausible(feats, status, message)
+    for i in range(n):
+        bad_hours = [h for h in range(t) for j in range(len(FEATURES))
+                     if not np.isnan(before[i, h, j]) and not lo[j] <= before[i, h, j] <= hi[j]]
+        if bad_hours:
+            h = min(bad_hours)
+            assert status[i] == "implausible" and message[i].startswith(f"hour {h + 1}: ")
+            np.testing.assert_array_equal(feats[i, :h], before[i, :h])
+            assert np.isnan(feats[i, h:]).all()
+        else:
+            assert status[i] == "ok" and message[i] == ""
+            np.testing.assert_array_equal(feats[i], before[i])
+    assert marked == (status == "implausible").sum() > 0
+
+
+class _WildTwin:
+    """In-process twin: HR of X_0 + 1e300 for the second X_0, fine otherwise."""
+
+    name = "wild"
+
+    def simulate(self, x0, doses, seeds):
+        n, t = doses.shape[:2]
+        feats = np.repeat(x0[list(FEATURES)].to_numpy(float)[:, None, :], t, axis=1)
+        feats[1, :, HR] = 1e300
+        return SimResult(feats, np.full(n, "ok", dtype=object))
+
+
+def test_in_process_twin_value_outside_contract_is_implausible():
+    x0, plan, actions = _study_bits(3)
+    runs = run_shard(_WildTwin(), plan, 0, x0, actions, log=open("/dev/null", "w"))
+    second = plan.x0_stay_ids[1]
+    bad = runs[runs.init_stay_id == second]
+    assert set(bad.status) == {"implausible"} and bad.HR.isna().all() and len(bad) == 3
+    assert bad.message.iloc[0].startswith("hour 1: HR = 1e+300 /min")
+    assert set(runs[runs.init_stay_id != second].status) == {"ok"}
+
+
+# ---- config: duplicated keys, shard cap, runs per sequence --------------------------------
+
+
+def test_duplicated_yaml_key_names_key_and_both_lines(tmp_path):
+    path = tmp_path / "study.yaml"
+    path.write_text("study: x\ntesting:\n  alpha: 0.05\n  correction: holm\n  alpha: 0.5\n")
+    with pytest.raises(ContractError) as err:
+        load_yaml_strict(path)
+    assert str(err.value) == (f"{path}: key 'alpha' is written twice (lines 3 and 5); "
+                              "YAML would keep only the last")
+    path.write_text("a: {b: 1}\nc: [1, {b: 2}]\n")  # the same key in different maps is fine
+    assert load_yaml_strict(path) == {"a": {"b": 1}, "c": [1, {"b": 2}]}
+
+
+def test_n_shards_is_capped_at_the_number_of_actions():
+    assert shard_count({"twin_runs": {"n_shards": 4}}) == (4, None)
+    assert shard_count({"twin_runs": {"n_shards": N_ACTIONS}}) == (N_ACTIONS, None)
+    n, warning = shard_count({"twin_runs": {"n_shards": 1000}})
+    assert n == N_ACTIONS == 25
+    assert warning.startswith("config key twin_runs.n_shards: 1000 asked") and "25" in warning
+
+
+def test_runs_per_sequence_above_d_warns_once_with_both_numbers(caplog):
+    from twinfalsify.runs.plan import plan_twin_runs
+
+    hyps = pd.DataFrame({"actions": [(1, 2), (1, 3)]})
+    with caplog.at_level("WARNING", logger="twinfalsify"):
+        plan = plan_twin_runs(hyps, np.arange(50), 5000, 2, seed=1)
+    assert len(plan.x0_stay_ids) == 50
+    lines = [r.getMessage() for r in caplog.records if "runs_per_sequence" in r.getMessage()]
+    assert len(lines) == 1 and "5000 asked" in lines[0] and "only 50 stays" in lines[0]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="twinfalsify"):
+        plan_twin_runs(hyps, np.arange(50), 40, 2, seed=1)
+    assert not caplog.records
+
+
+# ---- code fingerprints --------------------------------------------------------------------
+
+
+def test_fingerprint_covers_exactly_the_modules_a_script_reaches(tmp_path):
+    """bounds.py is reached by the tests rule, not by the split rule; editing it changes
+    the first fingerprint only; editing an unrelated module changes neither."""
+    import shutil
+
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "src" / "twinfalsify", src / "twinfalsify")
+    scripts = ROOT / "scripts"
+    reach = {s: provenance.script_modules(scripts / f"{s}.py", src) for s in ("split", "tests")}
+    assert "twinfalsify.bounds" in reach["tests"]
+    assert "twinfalsify.bounds" not in reach["split"]
+    # the costly twin stage does not reach the statistics: a fix there reruns no twin run
+    for costly in ("twin_plan", "twin_shard", "twin_runs"):
+        assert "twinfalsify.bounds" not in provenance.script_modules(
+            scripts / f"{costly}.py", src), costly
+    assert {"twinfalsify", "twinfalsify.split", "twinfalsify.schema"} <= reach["split"]
+    before = {s: provenance.code_fingerprint(scripts / f"{s}.py", src) for s in reach}
+    bounds = src / "twinfalsify" / "bounds.py"
+    bounds.write_text(bounds.read_text() + "\n# a fix\n")
+    provenance._graph_cached.cache_clear()
+    after = {s: provenance.code_fingerprint(scripts / f"{s}.py", src) for s in reach}
+    assert after["split"] == before["split"] and after["tests"] != before["tests"]
+    # a served twin's module, named as extra, joins the closure
+    assert "twinfalsify.runs.serve" not in provenance.script_modules(
+        scripts / "twin_shard.py", src)
+    assert "twinfalsify.runs.serve" in provenance.script_modules(
+        scripts / "twin_shard.py", src, ["twinfalsify.runs.serve"])
+
+
+# ---- what reruns (snakemake -n on a finished small study) ---------------------------------
+
+
+def _rule_scripts(repo) -> dict[str, str]:
+    """rule name -> the script it runs, read from workflow/rules/*.smk."""
+    import re
+
+    out = {}
+    for smk in (repo / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"\n(?=rule \w+:)", smk.read_text()):
+            m = re.match(r"rule (\w+):", block)
+            s = re.search(r'scripts/(\w+)\.py', block)
+            if m and s:
+                out[m.group(1)] = s.group(1)
+    return out
+
+
+def _dry_run(work, config, repo):
+    """{rule: reason} of the jobs `snakemake -n` would run (empty: nothing to do)."""
+    import re
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "-n", "--cores", "2"],
+        capture_output=True, text=True, timeout=300,
+        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src")},
+    )
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    jobs: dict[str, set[str]] = {}
+    # grouped jobs (the twin shards) are listed indented under "Group job twin_shards"
+    for m in re.finditer(r"^ *(?:local)?rule (\w+):\n(?: +.*\n)*? +reason: (.*)$", out, re.M):
+        jobs.setdefault(m.group(1), set()).add(m.group(2))
+    return jobs
+
+
+@pytest.mark.slow
+def test_what_reruns_after_which_change(tmp_path):
+    """On a finished small study: execution-only twin keys rerun nothing; a library edit
+    reruns exactly the rules whose scripts reach the edited module (params changed) and
+    what is downstream of them (inputs updated); a study parameter reruns its consumers."""
+    import re
+    import shutil
+
+    import yaml
+
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+        src, dst = ROOT / part, repo / part
+        if src.is_dir():
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
+                              "timeout_s": 60, "retries": 1}
+    config = tmp_path / "study.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    work = tmp_path / "work"
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "--cores", "2"],
+        capture_output=True, text=True, timeout=900,
+        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src"), "MPLBACKEND": "Agg"},
+    )
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert _dry_run(work, config, repo) == {}
+
+    # execution-only keys of a served twin: no shard, no job at all
+    cfg["twins"]["oracle"].update(workers=2, timeout_s=90, retries=0, batch_size=7,
+                                  fail_fast_runs=5, max_restarts=3)
+    config.write_text(yaml.safe_dump(cfg))
+    assert _dry_run(work, config, repo) == {}
+
+    # a library edit: exactly the rules whose scripts reach bounds.py, by params
+    bounds = repo / "src" / "twinfalsify" / "bounds.py"
+    bounds.write_text(bounds.read_text() + "\n# a fix\n")
+    jobs = _dry_run(work, config, repo)
+    reach = {rule for rule, script in _rule_scripts(repo).items()
+             if "twinfalsify.bounds" in provenance.script_modules(
+                 repo / "scripts" / f"{script}.py", repo / "src")}
+    ran = set(re.findall(r"^ *(?:local)?rule (\w+):", done.stdout + done.stderr, re.M))
+    by_params = {r for r, why in jobs.items() if any("Params have changed" in w for w in why)}
+    # Snakemake gives one reason per job: a job whose inputs an earlier rerun job rewrites
+    # says so, even if its params changed too; so: every rule of the study that reaches
+    # bounds.py reruns, a rerun for changed params is always one of them, and every other
+    # rerun is downstream of one of them
+    assert reach & ran <= set(jobs), (reach & ran) - set(jobs)
+    assert by_params and by_params <= reach, by_params
+    others = set(jobs) - reach
+    assert all(any("updated by another job" in w for w in jobs[r]) for r in others), jobs
+    for rule in ("trajectories", "split", "design", "twin_plan", "twin_shard", "twin_runs"):
+        assert rule in ran and rule not in jobs, (rule, jobs.get(rule))
+    bounds.write_text(bounds.read_text().removesuffix("\n# a fix\n"))
+    assert _dry_run(work, config, repo) == {}  # back as it was: nothing to do
+
+    # a builtin twin's module: both twins' shards (and what follows), not the design stage
+    builtin = repo / "src" / "twinfalsify" / "twins" / "builtin.py"
+    builtin.write_text(builtin.read_text() + "\n# a fix\n")
+    jobs = _dry_run(work, config, repo)
+    assert "twin_shard" in jobs and any("Params have changed" in w for w in jobs["twin_shard"])
+    for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
+        assert rule not in jobs, (rule, jobs.get(rule))
+
+
+# ---- the workflow refuses at parse time, writing nothing ----------------------------------
+
+
+def _snakemake(tmp_path, text: str, *args: str):
+    from slurm.runs import run
+
+    config = tmp_path / "study.yaml"
+    config.write_text(text)
+    done = run(tmp_path, config, *args, "--cores", "1", timeout=300)
+    return done, done.stdout + done.stderr
+
+
+@pytest.mark.slow
+def test_snakemake_refuses_a_duplicated_key(tmp_path):
+    text = (ROOT / "config" / "test.yaml").read_text() + "seed: 8\n"
+    done, out = _snakemake(tmp_path, text)
+    assert done.returncode != 0
+    line = next(ln for ln in out.splitlines() if ln.startswith("invalid config: "))
+    assert line.endswith("study.yaml: key 'seed' is written twice (lines 3 and 18); YAML "
+                         "would keep only the last"), line
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.slow
+def test_snakemake_refuses_a_results_path_it_cannot_write(tmp_path):
+    (tmp_path / "results").write_text("not a folder")
+    done, out = _snakemake(tmp_path, (ROOT / "config" / "test.yaml").read_text())
+    assert done.returncode != 0
+    assert f"cannot write results under results/test: {tmp_path / 'results'} is a file, " \
+           "not a folder" in out, out[-2000:]
+    assert (tmp_path / "results").read_text() == "not a folder"
+
+
+@pytest.mark.slow
+def test_snakemake_caps_n_shards_and_says_so(tmp_path):
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["twin_runs"]["n_shards"] = 1000
+    done, out = _snakemake(tmp_path, yaml.safe_dump(cfg), "-n")
+    assert done.returncode == 0, out[-2000:]
+    assert ("WARNING: config key twin_runs.n_shards: 1000 asked, but a shard holds whole "
+            "first-action groups and there are 25 actions: using 25 shards") in out
+    assert out.count("rule twin_shard:") == 25 * len(cfg["twins"])
+
+
+def test_rule_script_os_error_is_one_line(tmp_path, capsys):
+    """A rule that cannot write (read-only or full disk, a file where a folder should be)
+    ends with one line naming the path, exit 1."""
+    from types import SimpleNamespace
+
+    from twinfalsify.io import run_rule, unwritable, write_parquet
+
+    blocker = tmp_path / "results"
+    blocker.write_text("x")
+    target = blocker / "test" / "d.parquet"
+    sm = SimpleNamespace(log=[str(tmp_path / "rule.log")], rule="split")
+    with pytest.raises(SystemExit) as ex:
+        run_rule(sm, lambda _: write_parquet(pd.DataFrame({"a": [1]}), target))
+    assert ex.value.code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"ERROR: {blocker / 'test'}: Not a directory"), err
+    assert unwritable(blocker / "test") == (
+        f"cannot write results under {blocker / 'test'}: {blocker} is a file, not a folder")
+    assert unwritable(tmp_path / "new" / "deeper") is None
+
+
+def test_twin_context_stays_valid_when_the_study_folder_moves(tmp_path):
+    """twin_context.json names D0 relative to its own folder: a moved copy still builds."""
+    import json
+    import shutil
+
+    from twinfalsify.runs.registry import make_twin
+    from twinfalsify.sources.synthetic import generate
+
+    old = tmp_path / "old" / "results" / "s"
+    old.mkdir(parents=True)
+    generate({"n_stays": 60}, seed=2).to_parquet(old / "d0.parquet")
+    (old / "twin_context.json").write_text(json.dumps(
+        {"source": {"kind": "synthetic", "synthetic": {"n_stays": 60}}, "d0": "d0.parquet"}))
+    new = tmp_path / "elsewhere" / "s"
+    shutil.move(old, new)
+    twin = make_twin("f", {"kind": "fitted"}, new / "twin_context.json")
+    x0, doses, seeds = _study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
+    assert np.isfinite(twin.simulate(x0, doses, seeds).features).all()
