@@ -20,6 +20,7 @@ def main(sm):
         d0, outcomes=outcomes, quantiles=tuple(cfg.get("quantiles", (0.2, 0.8))),
         min_support=int(cfg.get("min_support", 10)),
         kinds=tuple(cfg.get("kinds", ("causal", "manski"))),
+        horizon=cfg.get("horizon"), sequences=cfg.get("sequences"),
     )
     log.info("hypotheses: %s", hyps.groupby("kind").size().to_dict())
     write_json(actions.to_json(), sm.output.actions)

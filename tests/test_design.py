@@ -99,3 +99,25 @@ def test_action_space_table_counts_all_hours(data):
     table = design.action_space_table(d, bins)
     assert len(table) == 25 and table["n_hours"].sum() == 4 * d[STAY_ID].nunique()
     assert table["share"].sum() == pytest.approx(1.0)
+
+
+def test_restrict_hypotheses_keeps_exactly_the_listed_prefixes(data):
+    """horizon / sequences keep every hypothesis with t <= horizon whose a_1:t prefixes a
+    listed sequence (brute force), unchanged, and count the rest in the report."""
+    _, d0, _ = data
+    _, _, full, report = design.design_on_d0(d0, min_support=10)
+    seqs = [list(a) for a in full.loc[full["t"] == 2, "actions"].head(3)]
+    _, _, got, rep = design.design_on_d0(d0, min_support=10, horizon=2, sequences=seqs)
+    want = [r for r in full.itertuples()
+            if r.t <= 2 and any(list(r.actions) == s[: r.t] for s in seqs)]
+    assert len(got) == len(want) > 0
+    np.testing.assert_array_equal(got["hyp_id"], np.arange(len(got)))
+    cols = ["kind", "outcome", "t", "y_lo", "y_up", "support"]
+    pd.testing.assert_frame_equal(
+        got[cols].reset_index(drop=True),
+        full.loc[[r.Index for r in want], cols].reset_index(drop=True))
+    assert got["actions"].map(tuple).tolist() == [tuple(r.actions) for r in want]
+    assert rep["kept"].sum() == len(got)
+    assert (rep["kept"] + rep["dropped_outside_design"]).sum() == report["kept"].sum()
+    with pytest.raises(ContractError, match="no hypothesis left"):
+        design.design_on_d0(d0, min_support=10, sequences=[[24, 24, 24, 24]], horizon=1)

@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -30,7 +31,7 @@ from twinfalsify.pulse.worker import (
     norepinephrine_ml_per_min,
     saline_ml_per_min,
 )
-from twinfalsify.schema import FEATURES
+from twinfalsify.schema import FEATURES, ContractError
 
 TESTS = Path(__file__).resolve().parent
 FAKES = TESTS / "fakes"
@@ -38,6 +39,7 @@ FIXTURE = TESTS / "fixtures" / "pulse-reference"
 SRC = TESTS.parent / "src"
 sys.path.insert(0, str(FAKES))
 import pulse.engine.PulseEngine as fake_engine  # noqa: E402  (the fake, a test fixture)
+from pulse import DATA_ROOT  # noqa: E402  (the fake's stand-in data root)
 
 RUNS = pd.read_csv(FIXTURE / "runs.csv")
 PATIENTS = pd.read_csv(FIXTURE / "patients.csv").set_index("patient_id")
@@ -105,7 +107,7 @@ def assert_hours_equal(got: list[dict], want: list[dict]) -> None:
 
 @pytest.fixture
 def worker(tmp_path):
-    w = PulseWorker(state_cache=tmp_path / "cache")
+    w = PulseWorker(state_cache=tmp_path / "cache", data_root=str(DATA_ROOT))
     yield w
     w.close()
 
@@ -134,7 +136,7 @@ def test_worker_output_equals_recorded_values(worker, run_id):
 
 
 def test_every_recorded_run_in_one_worker_reuses_prefixes(tmp_path):
-    w = PulseWorker(state_cache=tmp_path / "cache")
+    w = PulseWorker(state_cache=tmp_path / "cache", data_root=str(DATA_ROOT))
     before = dict(fake_engine.CALLS)
     for run_id in RUN_IDS:  # same X_0 consecutively, as the runner sends them
         status, want = expected(run_id)
@@ -153,7 +155,7 @@ def test_every_recorded_run_in_one_worker_reuses_prefixes(tmp_path):
         assert_hours_equal(res["hours"], want[:hours])
     assert w.stats.simulated_hours == 57
     # a new worker process with the same cache does not stabilise again
-    w2 = PulseWorker(state_cache=tmp_path / "cache")
+    w2 = PulseWorker(state_cache=tmp_path / "cache", data_root=str(DATA_ROOT))
     n_init = fake_engine.CALLS["initialize_engine"]
     assert w2.simulate(request("P2-S3"))["status"] == "ok"
     assert fake_engine.CALLS["initialize_engine"] == n_init and w2.stats.stable_cache_hits == 1
@@ -174,7 +176,7 @@ def test_out_of_range_baselines_give_init_failed_with_engine_message(tmp_path):
     loose = pu.load_init_limits()
     loose = pu.InitLimits({**loose.ranges, "HR": (0, 300)}, loose.dia_sys_ratio_max,
                           loose.bmi, loose.height_cm)
-    w = PulseWorker(state_cache=tmp_path / "c", init_limits=loose)
+    w = PulseWorker(state_cache=tmp_path / "c", data_root=str(DATA_ROOT), init_limits=loose)
     req = request("P1-S1")
     req["x0"]["HR"] = 130.0  # recorded R1_HR130
     res = w.simulate(req)
@@ -232,7 +234,7 @@ def test_worker_subprocess_over_the_protocol(tmp_path):
     lines = [{"op": "hello", "protocol": 1}] + [request(r) for r in RUN_IDS] + [{"op": "shutdown"}]
     proc = subprocess.run(
         [sys.executable, "-m", "twinfalsify.pulse.worker", "--state-cache",
-         str(tmp_path / "cache")],
+         str(tmp_path / "cache"), "--data-root", str(DATA_ROOT)],
         input="".join(json.dumps(m) + "\n" for m in lines), capture_output=True, text=True,
         env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -247,3 +249,55 @@ def test_worker_subprocess_over_the_protocol(tmp_path):
         assert res["id"] == run_id and res["status"] == status
         assert_hours_equal(res["hours"], want)
     assert "simulated 57 engine-hours for 60 requested hours" in proc.stderr
+
+
+def _serve(args: list[str], env: dict, cwd) -> subprocess.CompletedProcess:
+    lines = [{"op": "hello", "protocol": 1}, request("P1-S1"), {"op": "shutdown"}]
+    return subprocess.run(
+        [sys.executable, "-m", "twinfalsify.pulse.worker", *args],
+        input="".join(json.dumps(m) + "\n" for m in lines), capture_output=True, text=True,
+        env=env, cwd=cwd, timeout=120)
+
+
+def test_wrong_data_root_answers_hello_not_ok(tmp_path):
+    """Default --data-root ./ in a folder that is not Pulse's bin/ (as under Snakemake): the
+    worker answers hello with ok: false naming --data-root / PULSE_DATA_ROOT and exits 2,
+    before any engine starts (the fake, like real Pulse, would die with SIGSEGV)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)])}
+    env.pop("PULSE_DATA_ROOT", None)
+    proc = _serve(["--state-cache", str(tmp_path / "c")], env, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    hello = json.loads(proc.stdout.splitlines()[0])
+    assert hello["op"] == "hello" and hello["ok"] is False
+    msg = hello["message"]
+    assert "--data-root" in msg and "PULSE_DATA_ROOT" in msg and "substances/" in msg
+    assert len(proc.stdout.splitlines()) == 1  # nothing simulated after a refused hello
+    # the environment variable is honoured
+    ok = _serve(["--state-cache", str(tmp_path / "c")], {**env, "PULSE_DATA_ROOT": str(DATA_ROOT)},
+                tmp_path)
+    assert ok.returncode == 0 and json.loads(ok.stdout.splitlines()[0])["ok"] is True
+
+
+def test_fake_engine_crashes_like_real_pulse_without_data_root(tmp_path):
+    """The check above is needed: an engine started on a bad data root dies with SIGSEGV."""
+    code = ("import sys; sys.path[:0] = [sys.argv[1], sys.argv[2]]\n"
+            "from twinfalsify.pulse.worker import PulseWorker\n"
+            "w = PulseWorker(state_cache=sys.argv[3], data_root=sys.argv[3])\n"
+            "w._ready = True  # skip the worker's check: what would the engine do?\n"
+            f"w.simulate({request('P1-S1')!r})\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(SRC), str(FAKES), str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -11, (proc.returncode, proc.stderr[-500:])
+
+
+def test_runner_stops_at_once_on_a_refused_hello(tmp_path):
+    """Through the runner: one line naming the fix, no run attempted, no retries."""
+    from twinfalsify.runs.runner import simulate_via_protocol
+
+    x0 = pd.DataFrame([{f: 1.0 for f in FEATURES}])
+    env = {"PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)]), "PULSE_DATA_ROOT": str(tmp_path)}
+    with pytest.raises(ContractError, match="PULSE_DATA_ROOT") as err:
+        simulate_via_protocol([sys.executable, "-m", "twinfalsify.pulse.worker"], x0,
+                              np.zeros((1, 1, 2)), np.array([1], dtype=np.uint64), env=env,
+                              progress=False)
+    assert "\n" not in str(err.value).split("; stderr tail")[0]

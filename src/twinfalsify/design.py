@@ -252,6 +252,42 @@ def build_hypotheses(
     return hyps.reset_index(drop=True), pd.DataFrame(report)
 
 
+def restrict_hypotheses(
+    hyps: pd.DataFrame,
+    report: pd.DataFrame,
+    *,
+    horizon: int | None = None,
+    sequences: list[list[int]] | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Keep the hypotheses with t <= ``horizon`` whose a_1:t is a prefix of one of
+    ``sequences`` (action codes): a study sized to a twin budget (every kept hypothesis is
+    unchanged; only which ones are tested changes, fixed before any twin run). hyp_id is
+    renumbered; the report gains ``dropped_outside_design`` and ``kept`` is updated."""
+    if horizon is None and not sequences:
+        return hyps, report
+    keep = np.ones(len(hyps), dtype=bool)
+    if horizon is not None:
+        keep &= hyps["t"].to_numpy() <= horizon
+    if sequences:
+        allowed = {tuple(seq[:k]) for seq in sequences for k in range(1, len(seq) + 1)}
+        keep &= np.array([tuple(a) in allowed for a in hyps["actions"]], dtype=bool)
+    out = hyps[keep].drop(columns="hyp_id").reset_index(drop=True)
+    if out.empty:
+        raise ContractError(
+            f"design: no hypothesis left with horizon {horizon} and sequences {sequences} "
+            "(each sequence lists action codes 0..24 = 5 x IV bin + vasopressor bin; see "
+            "tables/action_space.csv for those seen in D0)"
+        )
+    out.insert(0, "hyp_id", np.arange(len(out), dtype=np.int64))
+    kept = out.groupby(["outcome", "t", "kind"]).size()
+    rep = report.copy()
+    idx = pd.MultiIndex.from_frame(rep[["outcome", "t", "kind"]])
+    new_kept = kept.reindex(idx, fill_value=0).to_numpy()
+    rep["dropped_outside_design"] = rep["kept"].to_numpy() - new_kept
+    rep["kept"] = new_kept
+    return out, rep
+
+
 def design_on_d0(
     d0: pd.DataFrame,
     *,
@@ -260,15 +296,19 @@ def design_on_d0(
     min_support: int = 10,
     kinds: tuple[str, ...] = ("causal", "manski"),
     t_max: int = T_MAX,
+    horizon: int | None = None,
+    sequences: list[list[int]] | None = None,
 ) -> tuple[ActionBins, StateBins, pd.DataFrame, pd.DataFrame]:
     """Every data-dependent choice, made on D0 only (sample splitting): action bins, B-sets,
-    and the hypotheses with their kept/dropped report."""
+    and the hypotheses with their kept/dropped report (optionally restricted to a horizon and
+    to given action sequences: ``restrict_hypotheses``)."""
     actions = fit_action_bins(d0, t_max)
     states = fit_state_bins(d0, outcomes, t_max)
     hyps, report = build_hypotheses(
         d0, actions, states, outcomes=outcomes, quantiles=quantiles, min_support=min_support,
         kinds=kinds, t_max=t_max,
     )  # fmt: skip
+    hyps, report = restrict_hypotheses(hyps, report, horizon=horizon, sequences=sequences)
     return actions, states, hyps, report
 
 

@@ -2,6 +2,9 @@
 
     python -m twinfalsify.pulse.replay [--data DIR]
 
+A study recording (``answers-*.jsonl`` from ``python -m twinfalsify.runs.record`` around
+the real worker, e.g. tests/fixtures/pulse-demo) is served by ``runs.replay.ReplayTwin``:
+the worker's answers exactly as the runner received them. Otherwise
 DIR holds ``patients.csv`` and ``runs.csv`` as recorded from a real Pulse 4.2
 engine (README of the pulse-reference data). A ``simulate`` request is answered
 from the recording when its X_0 init features (schema.INIT_FEATURES) equal a
@@ -35,6 +38,7 @@ from twinfalsify.pulse.units import (
     to_study_features,
 )
 from twinfalsify.runs import protocol
+from twinfalsify.runs.replay import ReplayTwin, refuse
 from twinfalsify.schema import FEATURE_TABLE, INIT_FEATURES, T_MAX, ContractError
 
 NAME = "recorded-pulse"
@@ -45,11 +49,14 @@ PATIENT_COLUMNS = {"age": "age_yr", "weight": "weight_kg", "HR": "HR_baseline_pe
                    "RR": "RR_baseline_per_min"}
 
 
+CHECKOUT = Path(__file__).resolve().parents[3]
+
+
 def default_data_dir() -> Path:
     """$TWINFALSIFY_PULSE_REFERENCE, else the checkout's tests/fixtures/pulse-reference."""
     if os.environ.get(DATA_ENV):
         return Path(os.environ[DATA_ENV])
-    return Path(__file__).resolve().parents[3] / "tests" / "fixtures" / "pulse-reference"
+    return CHECKOUT / "tests" / "fixtures" / "pulse-reference"
 
 
 def _close(a: float, b: float) -> bool:
@@ -160,11 +167,35 @@ class RecordedPulse:
         return None
 
 
+def resolve_data_dir(data: str | None) -> Path:
+    """--data as given when it exists; a relative path that does not exist here is read
+    relative to the checkout (Snakemake may run the twin from another working folder)."""
+    if not data:
+        return default_data_dir()
+    path = Path(data)
+    if path.is_absolute() or path.exists():
+        return path
+    in_checkout = CHECKOUT / path
+    return in_checkout if in_checkout.exists() else path
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="replay twin: recorded real Pulse 4.2 runs")
-    ap.add_argument("--data", help="directory with patients.csv, runs.csv (and meta.json)")
+    ap = argparse.ArgumentParser(
+        prog="python -m twinfalsify.pulse.replay",
+        description="replay twin: recorded real Pulse 4.2 runs, either the reference "
+                    "recording (patients.csv, runs.csv) or a study recorded with "
+                    "python -m twinfalsify.runs.record (answers-*.jsonl)")
+    ap.add_argument("--data", help="recording folder (relative paths are also tried from the "
+                                   "checkout); default: $" + DATA_ENV + " or the reference")
     args = ap.parse_args(argv)
-    twin = RecordedPulse(args.data)
+    data = resolve_data_dir(args.data)
+    try:
+        if any(data.glob("answers*.jsonl")):
+            study = ReplayTwin(data, name=NAME)
+            return protocol.serve_forever(study.hello, study.simulate)
+        twin = RecordedPulse(data)
+    except ContractError as exc:
+        return refuse(f"{NAME}: {exc}")
     return protocol.serve_forever(twin.hello, twin.simulate)
 
 

@@ -64,6 +64,11 @@ from twinfalsify.pulse.units import (
 from twinfalsify.runs import protocol
 from twinfalsify.schema import FEATURE_TABLE, T_MAX, ContractError
 
+# Folders of a Pulse data root (the install's bin/). Real Pulse 4.2 started with a data root
+# lacking them logs "Unable to find substance directory" and then dies with SIGSEGV inside
+# initialize_engine, so the worker checks them before it starts any engine.
+DATA_ROOT_DIRS = ("substances", "config", "ecg", "environments", "nutrition")
+DATA_ROOT_ENV = "PULSE_DATA_ROOT"
 HOUR_S = 3600.0
 SALINE_BAG_ML = 5000.0
 NE_CONCENTRATION_UG_PER_ML = 16.0
@@ -132,6 +137,7 @@ class PulseWorker:
         self._init_failures: dict[str, str] = {}
         self._live: tuple[Any, tuple] | None = None  # (engine, prefix it is at)
         self._n_files = 0
+        self._ready = False
 
     # ------------------------------------------------------------------ Pulse API
     def api(self) -> SimpleNamespace:
@@ -149,7 +155,26 @@ class PulseWorker:
     def version(self) -> str:
         return str(self.api().eng.version())
 
+    def check_ready(self) -> None:
+        """Raise with one line naming the fix when no engine can start here: Pulse's Python
+        API does not import, or the data root lacks Pulse's data folders."""
+        if self._ready:
+            return
+        missing_root = data_root_problem(self.data_root)
+        if missing_root:
+            raise ContractError(missing_root)
+        try:
+            self.api()
+        except ImportError as exc:
+            raise ContractError(
+                f"cannot import Pulse's Python API (module {self.engine_module!r}): {exc}; put "
+                "the Pulse install's bin/ and python/ folders on PYTHONPATH (envs/pulse/build.sh "
+                "prints the line)"
+            ) from None
+        self._ready = True
+
     def hello(self) -> dict[str, Any]:
+        self.check_ready()
         return {"name": "pulse", "version": self.version(),
                 "features": [{"name": f.name, "unit": f.unit} for f in FEATURE_TABLE],
                 "capabilities": {"save_restore": True, "max_hours": T_MAX}}
@@ -292,6 +317,7 @@ class PulseWorker:
     def simulate(self, request: dict[str, Any]) -> dict[str, Any]:
         """One protocol ``simulate`` request -> the result fields (see module docstring)."""
         x0, doses, hours = _parse_request(request)
+        self.check_ready()  # never start an engine that would crash on a bad data root
         height = x0.get("height_cm")  # optional extension: a known height (recorded patients)
         patient, clamped = clamp_x0(x0, self.init_limits, height_cm=height)
         key = patient.key(f"{self.engine_module}:{self.version()}")
@@ -384,6 +410,17 @@ class PulseWorker:
         shutil.rmtree(self._tmp, ignore_errors=True)
 
 
+def data_root_problem(data_root: str | Path) -> str | None:
+    """None when ``data_root`` holds Pulse's data folders, else one line naming the fix."""
+    root = Path(data_root)
+    missing = [d for d in DATA_ROOT_DIRS if not (root / d).is_dir()]
+    if not missing:
+        return None
+    return (f"Pulse data root {str(root.resolve())!r} lacks {', '.join(d + '/' for d in missing)}"
+            f": pass --data-root or set {DATA_ROOT_ENV} to the Pulse install's bin/ folder "
+            "(envs/pulse/build.sh prints it)")
+
+
 def _event_names(events: Any) -> set[str]:
     """Active events -> names (real Pulse keys are eEvent enums, the fake's strings)."""
     if not events:
@@ -417,8 +454,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--state-cache", help="directory for stabilised states (kept across runs)")
     ap.add_argument("--engine-module", default="pulse",
                     help="Python package providing Pulse's API (default: pulse)")
-    ap.add_argument("--data-root", default=os.environ.get("PULSE_DATA_ROOT", "./"),
-                    help="Pulse's data root (the install's bin/ directory)")
+    ap.add_argument("--data-root", default=os.environ.get(DATA_ROOT_ENV, "./"),
+                    help=f"Pulse's data root: the install's bin/ folder, holding "
+                         f"{', '.join(DATA_ROOT_DIRS)} (default: ${DATA_ROOT_ENV}, else ./)")
     args = ap.parse_args(argv)
     # Keep the protocol on the real stdout; anything the engine prints goes to stderr.
     proto_out = os.fdopen(os.dup(1), "w", buffering=1)

@@ -122,7 +122,10 @@ def serve_forever(
 ) -> int:
     """Answer protocol requests until shutdown or end of input; return an exit code.
 
-    ``hello()`` returns the hello answer's fields; ``simulate(request)`` returns
+    ``hello()`` returns the hello answer's fields, or raises when the twin cannot run at
+    all (missing engine, bad data root): the answer is then ``ok: false`` with the
+    exception's text as ``message``, and the server exits with code 2, so the caller stops
+    at once instead of retrying every run. ``simulate(request)`` returns
     the result's fields (status, message, hours, clamped). An exception inside
     ``simulate`` becomes an "error" result for that request, not a dead worker.
     ``simulate_batch(requests)``, optional, returns one such fields object per
@@ -143,7 +146,14 @@ def serve_forever(
             continue
         op = msg["op"]
         if op == "hello":
-            answer = {"op": "hello", "ok": True, "protocol": PROTOCOL_VERSION, **hello()}
+            try:
+                answer = {"op": "hello", "ok": True, "protocol": PROTOCOL_VERSION, **hello()}
+            except Exception as exc:  # noqa: BLE001 - the twin cannot run: say why, then stop
+                stdout.write(encode({"op": "hello", "ok": False, "protocol": PROTOCOL_VERSION,
+                                     "message": str(exc) or type(exc).__name__}))
+                stdout.flush()
+                print(f"hello failed: {exc}", file=sys.stderr, flush=True)
+                return 2
         elif op == "simulate":
             answer = _simulate_one(simulate, msg)
         elif op == "simulate_batch":

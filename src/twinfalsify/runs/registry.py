@@ -141,7 +141,16 @@ def make_twin(
             command = shlex.split(command)
         if not command:
             raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
-        return ProtocolTwin(name, command, **_runner_options(spec, 600.0))
+        opts = _runner_options(spec, 600.0)
+        if command[0] in ("python", "python3"):
+            # "python" = the study's own interpreter, with this library importable, whatever
+            # PATH says (a twin needing another interpreter, e.g. Pulse's, names its path).
+            command = [sys.executable, *command[1:]]
+            env = dict(opts["env"] or {})
+            env["PYTHONPATH"] = os.pathsep.join(
+                p for p in (str(_SRC), env.get("PYTHONPATH", os.environ.get("PYTHONPATH"))) if p)
+            opts["env"] = env
+        return ProtocolTwin(name, command, **opts)
     raise ContractError(f"twins.{name}: unknown kind {kind!r}; choose one of {', '.join(KINDS)}")
 
 

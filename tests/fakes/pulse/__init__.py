@@ -12,7 +12,14 @@ What it reproduces of the real engine (all observed in the recorded runs):
 - ``pull_active_events()`` returns {event name: active duration s};
 - a fatal error surfaces as the active event ``IrreversibleState`` after which
   ``advance_time_s`` returns False (inject with env FAKE_PULSE_IRREVERSIBLE_AT_HOUR=h);
-- an SEUrinate without a comment kills the engine (the real one segfaults).
+- an SEUrinate without a comment kills the engine (the real one segfaults);
+- a data root without Pulse's data folders kills the process with SIGSEGV inside
+  ``initialize_engine`` / ``serialize_from_file`` (what real Pulse 4.2 does after logging
+  "Unable to find substance directory"); ``DATA_ROOT`` is a valid stand-in root.
 What it cannot do: simulate. A patient or dose history that was not recorded
 raises ``LookupError`` naming what is missing.
 """
+
+from pathlib import Path
+
+DATA_ROOT = Path(__file__).resolve().parent / "data_root"

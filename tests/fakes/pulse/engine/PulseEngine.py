@@ -13,6 +13,7 @@ import csv
 import json
 import math
 import os
+import signal
 from enum import Enum
 from pathlib import Path
 
@@ -142,6 +143,12 @@ class PulseEngine:
                 f.write(f"[{level}] [0(s)] {msg}\n")
 
     # -------------------------------------------------------------- set up
+    def _check_data_root(self) -> None:
+        """Real Pulse 4.2 logs this, then segfaults, when its data root lacks substances/."""
+        if not (Path(self._data_root_dir) / "substances").is_dir():
+            self._log("ERROR", f"Unable to find substance directory : {self._data_root_dir}")
+            os.kill(os.getpid(), signal.SIGSEGV)
+
     def _set_requests(self, drm: SEDataRequestManager) -> None:
         if not isinstance(drm, SEDataRequestManager):
             raise TypeError(f"data_request_mgr must be SEDataRequestManager, got {drm!r}")
@@ -150,6 +157,7 @@ class PulseEngine:
     def initialize_engine(self, patient_configuration: SEPatientConfiguration,
                           data_request_mgr: SEDataRequestManager) -> bool:
         CALLS["initialize_engine"] += 1
+        self._check_data_root()
         self._set_requests(data_request_mgr)
         p = patient_configuration.get_patient()
         vals = dict(sex=p.get_sex(), age=p.get_age().get_value(), weight=p.get_weight().get_value(),
@@ -196,6 +204,7 @@ class PulseEngine:
     def serialize_from_file(self, state_file: str,
                             data_request_mgr: SEDataRequestManager) -> bool:
         CALLS["serialize_from_file"] += 1
+        self._check_data_root()
         self._set_requests(data_request_mgr)
         try:
             with open(state_file) as f:
