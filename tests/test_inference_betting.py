@@ -121,7 +121,7 @@ def _reference_p(x_large, x_small, delta0, c):
         lam, s, ss = np.empty(n), 0.0, 0.0
         sig2_prev = 0.25
         for i, xi in enumerate(x, start=1):
-            lam[i - 1] = min(c, np.sqrt(2 * np.log(1 / delta0) / (n * sig2_prev)))
+            lam[i - 1] = np.sqrt(2 * np.log(1 / delta0) / (n * sig2_prev))  # WSR Thm 3: no c cap
             s += xi
             mu = (0.5 + s) / (i + 1)
             ss += (xi - mu) ** 2

@@ -143,7 +143,9 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
     assert np.all(p_full_lo[dec[:, 0] == REJECTED] <= a_star[0] * 1.003)
     # sides still undecided at the budget agree with the fixed computation at the budget
     both = (seq.stop_batch == seq.n_batches) & (dec[:, 0] == UNDECIDED)
-    np.testing.assert_allclose(p_lo[both], p_full_lo[both], rtol=1e-9)
+    # (to the crossing's tolerance: tol = 1e-3 on log K*, and chunked cumulative sums round
+    # differently when the other hypotheses differ)
+    np.testing.assert_allclose(p_lo[both], p_full_lo[both], rtol=1.1e-3)
     # stopping saved runs
     assert seq.runs_used().mean() < 0.8 * m
 

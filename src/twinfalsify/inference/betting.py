@@ -8,10 +8,13 @@ capital processes (WSR 2024, Sec. 4, "hedged capital", one-sided halves):
     K-_t(m) = prod_{i<=t} (1 - lambda-_i(m) (x_i - m)),   lambda-_i(m) = min(lambda_i, c / (1 - m)),
 
 with the predictable plug-in bet tuned for a fixed sample size n (WSR 2024, Sec. 5.1
-and Remark "fixed-n"): lambda_i = min(c, sqrt(2 log(1/delta0) / (n sigma2_{i-1}))),
+and Remark "fixed-n"): lambda_i = sqrt(2 log(1/delta0) / (n sigma2_{i-1})),
 mu_i = (1/2 + sum_{j<=i} x_j) / (i + 1), sigma2_i = (1/4 + sum_{j<=i} (x_j - mu_j)^2) / (i + 1),
 sigma2_0 = 1/4, c = 0.9 (WSR use 1/2 or 3/4; any c < 1 is valid, 0.9 is
-tighter at the small levels Holm needs, measured in docs/statistics.md).
+tighter at the small levels Holm needs, measured in docs/statistics.md). As in WSR's
+Theorem 3 the bet is truncated only at c/m (c/(1-m)), never at c itself: near a
+boundary (m small for K+) bets above 1 are allowed and still keep every factor
+>= 1 - c > 0, which is what makes small skewed samples near 0 or 1 tight.
 lambda_i depends on x_1..x_{i-1} only, so when the true
 mean is <= m (resp. >= m) K+ (K-) is a non-negative supermartingale with K_0 = 1
 and Ville's inequality gives P(max_{t<=n} K_t >= 1/delta) <= delta. Hence the
@@ -104,7 +107,9 @@ def plugin_bets(
 ) -> np.ndarray:
     """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
 
-    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only.
+    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only. Not
+    truncated here: ``c`` truncation is m-dependent (c/m, c/(1-m), in :func:`log_capital`);
+    ``c`` is accepted for backward compatibility and ignored.
     """
     sizes = np.diff(offsets)
     gid, t = _layout(offsets) if layout is None else layout
@@ -115,7 +120,7 @@ def plugin_bets(
     prev[offsets[:-1][sizes > 0]] = 0.25
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
-    return np.minimum(c, np.sqrt(k[gid] / prev))
+    return np.sqrt(k[gid] / prev)
 
 
 _CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)

@@ -7,9 +7,9 @@ for a candidate mean m,
 
     K+_t(m) = prod_{i<=t} (1 + min(lambda_i, c/m) (x_i - m)),
     K-_t(m) = prod_{i<=t} (1 - min(lambda_i, c/(1-m)) (x_i - m)),
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))),
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))),
 
-with mu_i, sigma2_i the running plug-in estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
+(truncated only at c/m, c/(1-m), WSR 2024 Thm 3) with mu_i, sigma2_i the running plug-in estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
 Unlike the fixed-n bets, lambda_i depends on neither n nor the final sample: it uses
 x_1..x_{i-1} and i only. Time runs over *all* runs in X_0 order (a run that does not enter
 contributes the factor 1), so K is a non-negative supermartingale in the filtration of the
@@ -33,14 +33,15 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
     evaluation, no search).
 (b) futility: no continuation of the twin data up to the budget can make the rule reject at
     alpha (the most lenient Holm threshold). Every future factor of K-_twin(L) is at most
-    1 + lambda_bar L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every future bet,
-    ``future_bet_bound``: the bets shrink with the accumulated variance), and only runs whose
+    1 + min(lambda_bar L, c) (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every
+    future bet, ``future_bet_bound``: the bets shrink with the accumulated variance; the bet
+    at L is truncated at c/L), and only runs whose
     real X_0 lies in B_0 can ever enter, so the best reachable capital is
-    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + lambda_bar L)^r), r = remaining runs with X_0
-    in B_0.
+    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + min(lambda_bar L, c))^r), r = remaining runs
+    with X_0 in B_0.
     This bounds the issue's "every remaining run at y_lo" path (and every other path), so
     stopping never loses a rejection the full budget could have made. Mirror for H_up with
-    factor 1 + lambda_bar (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
+    factor 1 + min(lambda_bar (1 - U), c), U = inf{m : max_t K-_up(m) >= 2/alpha}.
 
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
@@ -77,8 +78,8 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
             index: np.ndarray | None = None) -> np.ndarray:
     """WSR's predictable plug-in bets for a confidence sequence, per group.
 
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) (WSR 2024, eq. for
-    the "predictable plug-in" CS); ``i`` is the 1-based position among the group's values
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) (WSR 2024, eq. for
+    the "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later); ``i`` is the 1-based position among the group's values
     (``index`` overrides it; positions only, never the group size). delta0: one per group.
     """
     sizes = np.diff(offsets)
@@ -90,7 +91,7 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     prev[offsets[:-1][sizes > 0]] = 0.25
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
-    return np.minimum(c, np.sqrt(k / prev))
+    return np.sqrt(k / prev)
 
 
 @dataclass(frozen=True)
@@ -270,10 +271,11 @@ class SequentialState:
         lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
         best_lo = np.maximum(
             log_capital(tw, lf, -1, True, self.c),
-            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(lam * lf))
+            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam * lf, self.c)))
         best_up = np.maximum(
             log_capital(tw, uf, +1, True, self.c),
-            log_capital(tw, uf, +1, False, self.c) + r * np.log1p(lam * (1 - uf)))
+            log_capital(tw, uf, +1, False, self.c)
+            + r * np.log1p(np.minimum(lam * (1 - uf), self.c)))
         new = np.stack([np.where(rej_lo, REJECTED, np.where(best_lo < lev, FUTILE, UNDECIDED)),
                         np.where(rej_up, REJECTED, np.where(best_up < lev, FUTILE, UNDECIDED))],
                        axis=1).astype(np.int8)
@@ -317,17 +319,18 @@ def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
                      c: float = C_TRUNC) -> np.ndarray:
     """Upper bound on every future CS bet of each group, whatever the future values.
 
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) and
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) and
     sigma2_{i-1} i = 1/4 + sum_{j<i} (x_j - mu_j)^2 >= 1/4 + S_tau for i > tau (the sum only
-    grows), log(1 + i) >= log(2 + tau): so lambda_i <= min(c, sqrt(2 log(1/delta0) /
-    ((1/4 + S_tau) log(2 + tau)))) for every i > tau (tau = nhat so far).
+    grows), log(1 + i) >= log(2 + tau): so lambda_i <= sqrt(2 log(1/delta0) /
+    ((1/4 + S_tau) log(2 + tau))) for every i > tau (tau = nhat so far). The bet actually
+    placed at m is min(lambda_i, c/m) (K+) or min(lambda_i, c/(1-m)) (K-).
     """
     gid, t = _layout(side.offsets)
     mu = (0.5 + _segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
     sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
     s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
-    return np.minimum(c, np.sqrt(k))
+    return np.sqrt(k)
 
 
 def _group_means(side: OrderedSide) -> np.ndarray:
