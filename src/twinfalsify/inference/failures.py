@@ -66,7 +66,7 @@ def augment(samples: HypothesisSamples, k: np.ndarray, value: np.ndarray) -> Hyp
     ]
     return HypothesisSamples(
         y_lo=samples.y_lo, y_up=samples.y_up, n=samples.n, follow=samples.follow,
-        twin=Ragged.from_groups(groups),
+        twin=Ragged.from_groups(groups), keys=samples.keys,
     )  # fmt: skip
 
 

@@ -23,7 +23,7 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     ),
     "betting": (
         "twinfalsify.inference.betting:betting_test",
-        ("tune_alpha", "running_max", "c", "tol", "max_iter"),
+        ("tune_alpha", "orders", "running_max", "c", "tol", "max_iter"),
         True,
     ),
     "bernstein": ("twinfalsify.inference.bernstein:bernstein_test", (), False),
