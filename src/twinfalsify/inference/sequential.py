@@ -9,7 +9,8 @@ for a candidate mean m,
     K-_t(m) = prod_{i<=t} (1 - min(lambda_i, c/(1-m)) (x_i - m)),
     lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))),
 
-(truncated only at c/m, c/(1-m), WSR 2024 Thm 3) with mu_i, sigma2_i the running plug-in estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
+(truncated only at c/m, c/(1-m), WSR 2024 Thm 3) with mu_i, sigma2_i the running plug-in
+estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
 Unlike the fixed-n bets, lambda_i depends on neither n nor the final sample: it uses
 x_1..x_{i-1} and i only. Time runs over *all* runs in X_0 order (a run that does not enter
 contributes the factor 1), so K is a non-negative supermartingale in the filtration of the
@@ -79,8 +80,9 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     """WSR's predictable plug-in bets for a confidence sequence, per group.
 
     lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) (WSR 2024, eq. for
-    the "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later); ``i`` is the 1-based position among the group's values
-    (``index`` overrides it; positions only, never the group size). delta0: one per group.
+    the "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later);
+    ``i`` is the 1-based position among the group's values (``index`` overrides it;
+    positions only, never the group size). delta0: one per group.
     """
     sizes = np.diff(offsets)
     gid, t = _layout(offsets)
