@@ -239,7 +239,7 @@ def adaptive_results(
             "failed_runs": "drop", "y_lo": s.y_lo, "y_up": s.y_up,
             "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
             "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
-            "rejected": rej, "correction": correction, "alpha": alpha,
+            "p_floor": False, "rejected": rej, "correction": correction, "alpha": alpha,
             "stop_batch": dec["stop_batch"].to_numpy(), "runs_used": used,
             "decision": dec[f"decision_{side}"].to_numpy(),
         }))  # fmt: skip
