@@ -81,10 +81,17 @@ def build(cfg: dict, seed: int) -> Study:
                  {"source": cfg["source"], "d0": str(tmp / "d0.parquet")})
 
 
+def in_process(spec: dict) -> dict:
+    """The twin spec without its protocol keys: builtin twins run in-process here (same
+    outputs as served over the protocol, which the workflow tests check)."""
+    return {k: v for k, v in spec.items()
+            if k not in ("protocol", "workers", "timeout_s", "retries")}
+
+
 def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: dict,
             alpha: float, seed: int) -> list[dict]:
     """Fixed vs adaptive for one twin: one row per batch size."""
-    twin = make_twin(name, spec, st.ctx)
+    twin = make_twin(name, in_process(spec), st.ctx)
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
                       for k in range(len(st.plan.shards))], ignore_index=True)
     nodes = tp.load_nodes(runs, st.plan, st.x0)

@@ -45,6 +45,7 @@ def main(sm):
         batch_size=int(runs_cfg.get("batch_size", 100)),
         alpha=float(testing.get("alpha", 0.05)),
         seed=int(sm.params.seed),
+        correction=str(testing.get("correction", "holm")),
         log=_Log(),
     )
     log.info("shard %s: %s", sm.wildcards.shard, summary)

@@ -9,6 +9,7 @@ import pytest
 
 from twinfalsify.bounds import ObservationalSide
 from twinfalsify.inference.betting import OrderedSide, log_capital
+from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import Ragged
 from twinfalsify.inference.sequential import (
     FUTILE,
@@ -129,14 +130,19 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
         np.concatenate([p[2].in_b0 for p in parts]), np.concatenate([p[2].failed for p in parts]))
     nf = np.full(h, 2 * h)
     seq = _state(hyps, obs, runs, m, 20, n_family=nf)
-    full = _state(hyps, obs, runs, m, m, n_family=nf)  # batch 0, then everything
+    full = _state(hyps, obs, runs, m, m, n_family=nf, holm_aware=False)  # batch 0, then all
     p_full_lo, p_full_up, _ = full.p_values(runs)
     p_lo, p_up, _ = seq.p_values(runs)
     dec = seq.side
     assert (dec == REJECTED).sum() > 20 and (dec == FUTILE).sum() > 20  # both rules act
-    # futile: not rejectable at alpha even with every run of the budget
-    assert np.all(p_full_lo[dec[:, 0] == FUTILE] > 0.05)
-    assert np.all(p_full_up[dec[:, 1] == FUTILE] > 0.05)
+    # futile at level a (alpha, or Holm-aware alpha/2^q): not reachable with the whole budget
+    lvl = seq.fut_level
+    assert np.all(p_full_lo[dec[:, 0] == FUTILE] > lvl[dec[:, 0] == FUTILE, 0])
+    assert np.all(p_full_up[dec[:, 1] == FUTILE] > lvl[dec[:, 1] == FUTILE, 1])
+    assert (lvl[dec == FUTILE] < 0.05).sum() > 10  # Holm-aware futility acts
+    # ... and Holm on the full-budget p-values rejects none of the futile sides
+    holm_full = correct(np.concatenate([p_full_lo, p_full_up]), 0.05, "holm").reshape(2, -1).T
+    assert not holm_full[dec == FUTILE].any()
     # early rejection verified exactly at a*: the crossing p agrees (to its tolerance)
     a_star = 0.05 / nf
     assert np.all(p_lo[dec[:, 0] == REJECTED] <= a_star[0])
@@ -146,8 +152,9 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
     # (to the crossing's tolerance: tol = 1e-3 on log K*, and chunked cumulative sums round
     # differently when the other hypotheses differ)
     np.testing.assert_allclose(p_lo[both], p_full_lo[both], rtol=1.1e-3)
-    # stopping saved runs
-    assert seq.runs_used().mean() < 0.8 * m
+    # stopping saved runs, Holm-aware futility more
+    plain = _state(hyps, obs, runs, m, 20, n_family=nf, holm_aware=False)
+    assert seq.runs_used().mean() < plain.runs_used().mean() < 0.8 * m
 
 
 def test_no_twin_run_when_the_observational_bound_is_uninformative():

@@ -73,6 +73,7 @@ from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
 UNDECIDED, REJECTED, FUTILE = 0, 1, 2
+HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
 
 
 def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
@@ -187,6 +188,10 @@ class SequentialState:
     c: float = C_TRUNC
     n_family: np.ndarray | None = None
     only: np.ndarray | None = None  # (H,) bool: hypotheses to run (others never receive runs)
+    holm_aware: bool = True  # futility at the Holm threshold a side can still face (doc (c))
+    # (H,) labels: primary-futile sides are counted within (kind, label), e.g. the shard that
+    # runs the hypothesis (shards share nothing); None: within the kind (the whole family)
+    holm_scope: np.ndarray | None = None
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -223,9 +228,20 @@ class SequentialState:
         self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
         self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
         self.side = np.zeros((h, 2), dtype=np.int8)
+        # level at which a side was found futile: alpha ("primary": p > alpha for sure) or a
+        # Holm-aware level alpha / 2^q < alpha (p > that level for sure); 0 if not futile
+        self.fut_level = np.zeros((h, 2))
+        # Holm-aware futility: bounds at level alpha / 2^q (q = 0: the alpha bounds above)
+        self.q_hol = np.zeros((h, 2), dtype=np.int64)
+        self.l_hol, self.u_hol = self.l_fut.copy(), self.u_fut.copy()
+        kind = self.hyps["kind"].to_numpy() if "kind" in self.hyps else np.zeros(h)
+        scope = np.zeros(h, np.int64) if self.holm_scope is None else np.asarray(self.holm_scope)
+        label = pd.Series(kind).astype(str) + "|" + pd.Series(scope).astype(str)
+        self.family = pd.factorize(label)[0]
         self.stop_batch = np.full(h, -1, dtype=np.int64)
         no_obs = self.obs.n == 0  # p = 1 by rule: nothing to learn from the twin
         self.side[no_obs] = FUTILE
+        self.fut_level[no_obs] = self.alpha
         self.stop_batch[no_obs] = 0
         if self.only is not None:
             self.stop_batch[~np.asarray(self.only, bool)] = 0
@@ -268,9 +284,39 @@ class SequentialState:
         rej_up = log_capital(tw, self.u_star[act], +1, True, self.c) >= lev_star
         # (b) futility at alpha: best reachable capital up to the budget
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
-        lev = np.log(2.0 / self.alpha)
-        lf, uf = self.l_fut[act], self.u_fut[act]
         lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
+        lev = np.full(len(act), np.log(2.0 / self.alpha))
+        best_lo, best_up = self._best(tw, act, r, lam, self.l_fut[act], self.u_fut[act])
+        fut_lo, fut_up = best_lo < lev, best_up < lev
+        lvl_lo = np.where(fut_lo, self.alpha, 0.0)
+        lvl_up = np.where(fut_up, self.alpha, 0.0)
+        if self.holm_aware:
+            # (c) Holm-aware futility: F sides of the family are primary-futile (p > alpha
+            # for sure), so a side can only be rejected at a Holm threshold <= alpha/(F+1)
+            # (its rank is at most 2H_f - F); quantised to alpha/2^q >= alpha/(F+1)
+            self._refresh_holm_bounds(act)
+            q_lo, q_up = self.q_hol[act, 0], self.q_hol[act, 1]
+            a_lo, a_up = self.alpha / 2.0 ** q_lo, self.alpha / 2.0 ** q_up
+            h_lo, h_up = self._best(tw, act, r, lam, self.l_hol[act], self.u_hol[act])
+            hol_lo = (q_lo > 0) & ~fut_lo & (h_lo < np.log(2.0 / a_lo))
+            hol_up = (q_up > 0) & ~fut_up & (h_up < np.log(2.0 / a_up))
+            fut_lo, fut_up = fut_lo | hol_lo, fut_up | hol_up
+            lvl_lo = np.where(hol_lo, a_lo, lvl_lo)
+            lvl_up = np.where(hol_up, a_up, lvl_up)
+        new = np.stack([np.where(rej_lo, REJECTED, np.where(fut_lo, FUTILE, UNDECIDED)),
+                        np.where(rej_up, REJECTED, np.where(fut_up, FUTILE, UNDECIDED))],
+                       axis=1).astype(np.int8)
+        newly = und & (new == FUTILE)
+        self.side[act] = np.where(und, new, self.side[act])
+        lv = np.stack([lvl_lo, lvl_up], axis=1)
+        self.fut_level[act] = np.where(newly, lv, self.fut_level[act])
+        # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
+        done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
+        self.stop_batch[act[done]] = b
+
+    def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
+              lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
         best_lo = np.maximum(
             log_capital(tw, lf, -1, True, self.c),
             log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam * lf, self.c)))
@@ -278,13 +324,30 @@ class SequentialState:
             log_capital(tw, uf, +1, True, self.c),
             log_capital(tw, uf, +1, False, self.c)
             + r * np.log1p(np.minimum(lam * (1 - uf), self.c)))
-        new = np.stack([np.where(rej_lo, REJECTED, np.where(best_lo < lev, FUTILE, UNDECIDED)),
-                        np.where(rej_up, REJECTED, np.where(best_up < lev, FUTILE, UNDECIDED))],
-                       axis=1).astype(np.int8)
-        self.side[act] = np.where(und, new, self.side[act])
-        # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
-        done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
-        self.stop_batch[act[done]] = b
+        return best_lo, best_up
+
+    def primary_futile(self) -> np.ndarray:
+        """(H,) F: primary-futile sides (p > alpha for sure) in each hypothesis' family."""
+        prim = ((self.side == FUTILE) & (self.fut_level >= self.alpha)).sum(axis=1)
+        per_family = np.bincount(self.family, weights=prim, minlength=self.family.max() + 1)
+        return per_family[self.family].astype(np.int64)
+
+    def _refresh_holm_bounds(self, act: np.ndarray) -> None:
+        """q = floor(log2(F + 1)) per active side; recompute L, U at alpha / 2^q where q grew."""
+        f = self.primary_futile()[act]
+        q = np.floor(np.log2(f + 1.0)).astype(np.int64)
+        for col, side, sign in ((0, self.lo, +1), (1, self.up, -1)):
+            grew = q > self.q_hol[act, col]
+            if not grew.any():
+                continue
+            g = act[grew]
+            self.q_hol[g, col] = q[grew]
+            lev = np.log(2.0 * 2.0 ** q[grew] / self.alpha)
+            b = _bound(side.take(g), lev, sign, True, self.c)
+            if col == 0:
+                self.l_hol[g] = b
+            else:
+                self.u_hol[g] = b
 
     def runs_used(self) -> np.ndarray:
         """(H,) runs revealed to each hypothesis at its stop (budget if still running)."""
@@ -352,8 +415,10 @@ class AdaptiveOutcome:
     nhat: np.ndarray  # (H,) entering twin runs at the stop
     rejected_lo: np.ndarray  # (H,) after the correction (per family = kind)
     rejected_up: np.ndarray
-    twin_hours_adaptive: int
-    twin_hours_fixed: int
+    twin_hours_adaptive: int  # node-runs simulated: X_0 in B_0 of a running hypothesis only
+    twin_hours_fixed: int  # every node for the whole budget (prefix reuse)
+    twin_hours_all_x0: int  # adaptive stopping, but every revealed X_0 simulated per node
+    twin_hours_paper: int  # every sequence from scratch for the whole budget
 
 
 def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -362,6 +427,31 @@ def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarra
     on = paths >= 0
     np.maximum.at(out, paths[on], np.broadcast_to(per_hyp[:, None], paths.shape)[on])
     return out
+
+
+def node_needs(paths: np.ndarray, per_hyp: np.ndarray, in_b0: np.ndarray, n_nodes: int
+               ) -> np.ndarray:
+    """(n_nodes, m) bool: run j of node v is needed iff some hypothesis whose path uses v has
+    j revealed (j < per_hyp[h]) and its real X_0 in B_0 (only those runs can ever enter).
+
+    Skipping the other runs changes no decision: a run whose X_0 is outside B_0 contributes
+    the factor 1 to that hypothesis whatever the twin does. The X_0 order is untouched, so
+    each hypothesis' runs stay a uniformly random order of the X_0 in D.
+    """
+    m = in_b0.shape[1]
+    need = np.zeros((n_nodes, m), dtype=bool)
+    revealed = in_b0 & (np.arange(m)[None, :] < np.asarray(per_hyp)[:, None])
+    for s in range(paths.shape[1]):
+        on = paths[:, s] >= 0
+        np.logical_or.at(need, paths[on, s], revealed[on])
+    return need
+
+
+def paper_hours(hyps: pd.DataFrame, budget: int) -> int:
+    """Twin-hours of the paper's scheme: every action sequence simulated from scratch,
+    t hours per run, ``budget`` runs per distinct sequence (no prefix reuse)."""
+    seqs = {tuple(int(a) for a in seq) for seq in hyps["actions"].tolist()}
+    return int(sum(len(q) for q in seqs) * budget)
 
 
 def embed_runs(runs: TwinRuns, idx: np.ndarray, h: int) -> TwinRuns:
@@ -395,26 +485,38 @@ def adaptive_test(
     budget: int | None = None,
     seed: int = 0,
     c: float = C_TRUNC,
+    holm_aware: bool | None = None,
+    shards: np.ndarray | None = None,
 ) -> AdaptiveOutcome:
     """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
 
-    Twin-hours with prefix reuse: node a_1:s costs one hour per run revealed to any
-    hypothesis whose path uses it; the fixed scheme simulates every node for the budget.
+    Twin-hours with prefix reuse: node a_1:s costs one hour per run simulated for it, i.e.
+    per run revealed to a hypothesis whose path uses it and whose B_0 holds that run's X_0
+    (``node_needs``); the fixed scheme simulates every node for the budget.
+    ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
+    Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
+    futile sides per shard as the workflow's parallel shards do (default: whole family).
     """
     m = nodes.x0.shape[0]
     budget = m if budget is None else int(budget)
     if not 0 <= budget <= m:
         raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
     runs = twin_runs_indexed(hyps, nodes, states)
-    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c)
+    if holm_aware is None:
+        holm_aware = correction in HOLM_AWARE
+    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
+                         holm_aware=bool(holm_aware), holm_scope=shards)
     run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
-    used = node_runs(hypothesis_paths(hyps, nodes.index), per_hyp, len(nodes.index))
+    paths = hypothesis_paths(hyps, nodes.index)
+    need = node_needs(paths, per_hyp, runs.in_b0, len(nodes.index))
+    used = need.sum(axis=1)
     rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
     return AdaptiveOutcome(
         p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
         int(used.sum()), int(len(nodes.index) * budget),
+        int(node_runs(paths, per_hyp, len(nodes.index)).sum()), paper_hours(hyps, budget),
     )
 
 
