@@ -89,8 +89,21 @@ def in_process(spec: dict) -> dict:
             if k not in ("protocol", "workers", "timeout_s", "retries")}
 
 
+def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets) -> dict:
+    """Opt-in curtailment at each epsilon: twin-hours ratio and fixed betting rejections kept."""
+    out = {}
+    ids = hyps["hyp_id"].to_numpy()
+    for eps in curtail:
+        o = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
+                          seed=seed, shards=shard_of, curtail=eps)
+        ad = {(i, "lo") for i in ids[o.rejected_lo]} | {(i, "up") for i in ids[o.rejected_up]}
+        out[f"ratio_curtail_{eps:g}"] = round(o.twin_hours_adaptive / o.twin_hours_fixed, 4)
+        out[f"kept_betting_curtail_{eps:g}"] = len(ad & fixed_sets.get("betting", set()))
+    return out
+
+
 def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: dict,
-            alpha: float, seed: int) -> list[dict]:
+            alpha: float, seed: int, curtail: tuple[float, ...] = ()) -> list[dict]:
     """Fixed vs adaptive for one twin: one row per batch size."""
     twin = make_twin(name, in_process(spec), st.ctx)
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
@@ -145,6 +158,7 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
             "ratio_no_holm_aware": round(plain.twin_hours_adaptive
                                          / max(plain.twin_hours_fixed, 1), 4),
             "rejected_no_holm_aware": int(plain.rejected_lo.sum() + plain.rejected_up.sum()),
+            **curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets),
             "seconds": round(time.monotonic() - t1, 1),
         })  # fmt: skip
     return rows
@@ -157,6 +171,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--twins", nargs="+", default=None)
     ap.add_argument("--calibrate", type=int, default=0, metavar="R")
     ap.add_argument("--bias-levels", type=float, nargs="+", default=[0.0, 5.0, 10.0, 25.0])
+    ap.add_argument("--curtail", type=float, nargs="*", default=[],
+                    help="also run opt-in curtailment at these epsilons")
     args = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
@@ -195,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
           f"(built in {time.monotonic() - t0:.0f} s)", flush=True)
     for name in args.twins or list(cfg["twins"]):
         for row in compare(st, name, cfg["twins"][name], args.batch_sizes, methods, alpha,
-                           seed):
+                           seed, tuple(args.curtail)):
             rows.append(row)
             print(json.dumps(row), flush=True)
     print(pd.DataFrame(rows).to_markdown(index=False))

@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy.special import erfc
 
 from twinfalsify.bounds import ObservationalSide, TwinNodes
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded
@@ -72,7 +73,7 @@ from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
-UNDECIDED, REJECTED, FUTILE = 0, 1, 2
+UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
 HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
 
 
@@ -192,6 +193,9 @@ class SequentialState:
     # (H,) labels: primary-futile sides are counted within (kind, label), e.g. the shard that
     # runs the hypothesis (shards share nothing); None: within the kind (the whole family)
     holm_scope: np.ndarray | None = None
+    # opt-in curtailment (doc (d)): stop a side when the estimated probability that the
+    # full budget rejects it at its Holm-aware level is below this epsilon (0: off)
+    curtail: float = 0.0
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -306,6 +310,10 @@ class SequentialState:
         new = np.stack([np.where(rej_lo, REJECTED, np.where(fut_lo, FUTILE, UNDECIDED)),
                         np.where(rej_up, REJECTED, np.where(fut_up, FUTILE, UNDECIDED))],
                        axis=1).astype(np.int8)
+        if self.curtail > 0:
+            cur = self._curtailed(runs, tw, nhat, act, j, lam)
+            new[:, 0] = np.where((new[:, 0] == UNDECIDED) & cur[:, 0], CURTAILED, new[:, 0])
+            new[:, 1] = np.where((new[:, 1] == UNDECIDED) & cur[:, 1], CURTAILED, new[:, 1])
         newly = und & (new == FUTILE)
         self.side[act] = np.where(und, new, self.side[act])
         lv = np.stack([lvl_lo, lvl_up], axis=1)
@@ -325,6 +333,41 @@ class SequentialState:
             log_capital(tw, uf, +1, False, self.c)
             + r * np.log1p(np.minimum(lam * (1 - uf), self.c)))
         return best_lo, best_up
+
+    def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
+                   j: int, lam_bar: np.ndarray) -> np.ndarray:
+        """(len(act), 2) bool: P(the full budget rejects at the side's Holm-aware level) <
+        ``curtail``, under a normal approximation of the remaining log-capital increments.
+
+        At m = L (H_lo; U for H_up) at level a = alpha / 2^q, each remaining run with X_0 in
+        B_0 enters with the observed rate pi = nhat / (revealed runs with X_0 in B_0) and
+        then adds g(x) = log(1 - min(lam, c/(1-L)) (x - L)), x drawn from the values seen so
+        far, lam = the largest future bet (``future_bet_bound``); so
+        log K_budget ~ N(log K_tau + r mu, r v) with mu, v the mean and variance of the
+        per-run increment (0 w.p. 1 - pi). A heuristic: it never affects validity (stopping
+        only forgoes power), and its power cost is measured (docs/sequential.md).
+        """
+        gid = np.repeat(np.arange(len(act)), tw.sizes)
+        seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)
+        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
+        pi = np.where(seen_b0 > 0, nhat / np.maximum(seen_b0, 1), 0.0)
+        out = np.zeros((len(act), 2), dtype=bool)
+        for col, sign in ((0, -1), (1, +1)):
+            q = self.q_hol[act, col]
+            m = (self.l_hol if col == 0 else self.u_hol)[act]
+            lev = np.log(2.0 * 2.0 ** q / self.alpha)
+            cap = self.c / (1.0 - m) if sign < 0 else self.c / np.maximum(m, 1e-12)
+            bet = np.minimum(lam_bar, cap)
+            g = np.log1p(np.clip(sign * bet[gid] * (tw.x - m[gid]), -self.c, None))
+            n_ok = np.maximum(nhat, 1)
+            g1 = np.bincount(gid, g, len(act)) / n_ok
+            g2 = np.bincount(gid, g * g, len(act)) / n_ok
+            mu, var = pi * g1, np.maximum(pi * g2 - (pi * g1) ** 2, 1e-12)
+            now = log_capital(tw, m, sign, False, self.c)
+            z = (now + r * mu - lev) / np.sqrt(r * var + 1e-12)
+            prob = 0.5 * erfc(-z / np.sqrt(2.0))
+            out[:, col] = (nhat >= 2) & (r > 0) & (prob < self.curtail)
+        return out
 
     def primary_futile(self) -> np.ndarray:
         """(H,) F: primary-futile sides (p > alpha for sure) in each hypothesis' family."""
@@ -487,6 +530,7 @@ def adaptive_test(
     c: float = C_TRUNC,
     holm_aware: bool | None = None,
     shards: np.ndarray | None = None,
+    curtail: float = 0.0,
 ) -> AdaptiveOutcome:
     """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
 
@@ -505,7 +549,7 @@ def adaptive_test(
     if holm_aware is None:
         holm_aware = correction in HOLM_AWARE
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
-                         holm_aware=bool(holm_aware), holm_scope=shards)
+                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail)
     run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()

@@ -40,7 +40,7 @@ from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
-DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile"}
+DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile", 3: "curtailed"}
 DECISION_COLUMNS = (
     "hyp_id", "stop_batch", "runs_used", "decision_lo", "decision_up", "p_lo", "p_up",
     "nhat", "n_failed",
