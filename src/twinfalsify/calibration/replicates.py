@@ -346,7 +346,8 @@ def adaptive_rows(
     hour per run simulated for it, i.e. revealed to a running hypothesis using it whose B_0
     holds the run's X_0; fixed = nodes x budget), the same without B_0 skipping
     (``twin_hours_all_x0``) and for the paper's scheme (``twin_hours_paper``), the ratio,
-    rejections of both kinds, and how many of the fixed betting / Hoeffding test's rejections (same replicate, same twin, ``fixed`` = ``run_tests`` rows) the
+    rejections of both kinds, and how many of the fixed betting / Hoeffding test's rejections
+    (same replicate, same twin, ``fixed`` = ``run_tests`` rows) the
     adaptive test also makes ("kept": same parameter set and side).
     """
     hyps = rep.hyps
