@@ -12,6 +12,7 @@ from twinfalsify.inference.betting import OrderedSide, log_capital
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import Ragged
 from twinfalsify.inference.sequential import (
+    CURTAILED,
     FUTILE,
     REJECTED,
     UNDECIDED,
@@ -97,13 +98,16 @@ def _world(h: int, n_obs: int, m: int, q_lo: float, twin_mean: float, propensity
     return hyps, obs, runs
 
 
-def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary():
-    """Twin mean = Q_lo (H_lo true, at its boundary): P(p_lo <= a) <= a at data-dependent stops."""
+@pytest.mark.parametrize("curtail", [0.0, 0.2])
+def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary(curtail):
+    """Twin mean = Q_lo (H_lo true, at its boundary): P(p_lo <= a) <= a at data-dependent stops
+    (Holm-aware futility and, opt-in, curtailment only choose the stops)."""
     rng = np.random.default_rng(2)
     h = 2000
     hyps, obs, runs = _world(h, 300, 400, q_lo=0.4, twin_mean=0.4, propensity=1.0, rng=rng)
     st = SequentialState(hyps, obs, None, budget=400, batch_size=25, alpha=0.05,
-                         n_family=np.full(h, 20))  # lenient a* = 0.0025: more early stops
+                         n_family=np.full(h, 20),  # lenient a* = 0.0025: more early stops
+                         curtail=curtail)
     run_to_stop(st, runs)
     p_lo, _, _ = st.p_values(runs)
     for a in (0.05, 0.2, 0.5):
@@ -155,6 +159,11 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
     # stopping saved runs, Holm-aware futility more
     plain = _state(hyps, obs, runs, m, 20, n_family=nf, holm_aware=False)
     assert seq.runs_used().mean() < plain.runs_used().mean() < 0.8 * m
+    # opt-in curtailment acts and saves runs in total (a curtailed side is not counted as
+    # primary-futile, so an individual other side may then run longer)
+    cur = _state(hyps, obs, runs, m, 20, n_family=nf, curtail=0.2)
+    assert (cur.side == CURTAILED).any() and cur.runs_used().sum() < seq.runs_used().sum()
+    assert not (cur.fut_level[cur.side == CURTAILED] > 0).any()
 
 
 def test_no_twin_run_when_the_observational_bound_is_uninformative():
