@@ -124,7 +124,9 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
     """Brute force: the same data run to the budget without stopping (one batch)."""
     rng = np.random.default_rng(3)
     h, m = 600, 600
-    parts = [_world(h // 3, 400, m, 0.4, tm, 0.7, rng, b0_frac=0.3) for tm in (0.05, 0.15, 0.3)]
+    parts = [_world(h // 4, 400, m, 0.4, tm, 0.7, rng, b0_frac=0.3) for tm in (0.05, 0.15, 0.3)]
+    # L > 1/2: the K- bet at L is truncated at c/(1-L) > 2c, so the future factor exceeds 1 + c
+    parts.append(_world(h // 4, 400, m, 0.8, 0.7, 0.95, rng, b0_frac=0.3))
     hyps = pd.concat([p[0] for p in parts], ignore_index=True)
     obs = ObservationalSide(np.concatenate([p[1].n for p in parts]), Ragged.from_groups(
         [g for p in parts for g in (p[1].follow.group(i) for i in range(len(p[1].follow)))]))

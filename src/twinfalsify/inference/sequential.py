@@ -34,15 +34,15 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
     evaluation, no search).
 (b) futility: no continuation of the twin data up to the budget can make the rule reject at
     alpha (the most lenient Holm threshold). Every future factor of K-_twin(L) is at most
-    1 + min(lambda_bar L, c) (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every
-    future bet, ``future_bet_bound``: the bets shrink with the accumulated variance; the bet
-    at L is truncated at c/L), and only runs whose
+    1 + min(lambda_bar, c/(1-L)) L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every
+    future bet, ``future_bet_bound``: the bets shrink with the accumulated variance; the K-
+    bet at L is truncated at c/(1-L)), and only runs whose
     real X_0 lies in B_0 can ever enter, so the best reachable capital is
-    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + min(lambda_bar L, c))^r), r = remaining runs
-    with X_0 in B_0.
+    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + min(lambda_bar, c/(1-L)) L)^r), r = remaining
+    runs with X_0 in B_0.
     This bounds the issue's "every remaining run at y_lo" path (and every other path), so
     stopping never loses a rejection the full budget could have made. Mirror for H_up with
-    factor 1 + min(lambda_bar (1 - U), c), U = inf{m : max_t K-_up(m) >= 2/alpha}.
+    factor 1 + min(lambda_bar, c/U) (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
 
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
@@ -325,13 +325,15 @@ class SequentialState:
     def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
               lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
+        with np.errstate(divide="ignore"):  # L = 1 or U = 0: the cap is infinite
+            cap_lo, cap_up = self.c / (1 - lf), self.c / uf
         best_lo = np.maximum(
             log_capital(tw, lf, -1, True, self.c),
-            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam * lf, self.c)))
+            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam, cap_lo) * lf))
         best_up = np.maximum(
             log_capital(tw, uf, +1, True, self.c),
             log_capital(tw, uf, +1, False, self.c)
-            + r * np.log1p(np.minimum(lam * (1 - uf), self.c)))
+            + r * np.log1p(np.minimum(lam, cap_up) * (1 - uf)))
         return best_lo, best_up
 
     def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
