@@ -77,7 +77,8 @@ def hedged_ci_reference(x: np.ndarray, alpha: float, c: float = C_TRUNC,
     lam_m = _plugin_bets_ref(x, alpha * (1 - theta))
 
     def rejected(m: float) -> tuple[bool, bool]:
-        with np.errstate(divide="ignore"):
+        m = np.float64(m)  # m = 0 or 1 (all-0 / all-1 samples): the cap is +inf, not an error
+        with np.errstate(divide="ignore", invalid="ignore"):
             kp = np.cumprod(1 + np.minimum(lam_p, c / m) * (x - m))
             km = np.cumprod(1 - np.minimum(lam_m, c / (1 - m)) * (x - m))
         return bool(np.any(theta * kp >= 1 / alpha)), bool(np.any((1 - theta) * km >= 1 / alpha))
