@@ -38,6 +38,7 @@ from twinfalsify import bounds, design
 from twinfalsify.falsify import make_methods, run_tests
 from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, node_runs
 from twinfalsify.runs import plan as tp
+from twinfalsify.runs.adaptive import shard_hypotheses
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, STAY_ID, to_array
 from twinfalsify.sources.synthetic import generate
@@ -81,14 +82,38 @@ def build(cfg: dict, seed: int) -> Study:
                  {"source": cfg["source"], "d0": str(tmp / "d0.parquet")})
 
 
+def in_process(spec: dict) -> dict:
+    """The twin spec without its protocol keys: builtin twins run in-process here (same
+    outputs as served over the protocol, which the workflow tests check)."""
+    return {k: v for k, v in spec.items()
+            if k not in ("protocol", "workers", "timeout_s", "retries")}
+
+
+def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets) -> dict:
+    """Opt-in curtailment at each epsilon: twin-hours ratio and fixed betting rejections kept."""
+    out = {}
+    ids = hyps["hyp_id"].to_numpy()
+    for eps in curtail:
+        o = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
+                          seed=seed, shards=shard_of, curtail=eps)
+        ad = {(i, "lo") for i in ids[o.rejected_lo]} | {(i, "up") for i in ids[o.rejected_up]}
+        out[f"ratio_curtail_{eps:g}"] = round(o.twin_hours_adaptive / o.twin_hours_fixed, 4)
+        out[f"kept_betting_curtail_{eps:g}"] = len(ad & fixed_sets.get("betting", set()))
+    return out
+
+
 def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: dict,
-            alpha: float, seed: int) -> list[dict]:
+            alpha: float, seed: int, curtail: tuple[float, ...] = ()) -> list[dict]:
     """Fixed vs adaptive for one twin: one row per batch size."""
-    twin = make_twin(name, spec, st.ctx)
+    twin = make_twin(name, in_process(spec), st.ctx)
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
                       for k in range(len(st.plan.shards))], ignore_index=True)
     nodes = tp.load_nodes(runs, st.plan, st.x0)
     hyps, m = st.hyps, len(st.plan.x0_stay_ids)
+    # Holm-aware futility counts per shard, as the workflow's parallel shards do
+    shard_of = np.zeros(len(hyps), np.int64)
+    for k in range(len(st.plan.shards)):
+        shard_of[shard_hypotheses(hyps, st.plan, k)] = k
     tv, nf = bounds.twin_side(hyps, nodes, st.states)
     res = run_tests(hyps, bounds.hypothesis_samples(hyps, st.obs, tv), nf,
                     make_methods(methods, seed), alpha=alpha)
@@ -101,7 +126,9 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
     for bs in batch_sizes:
         t1 = time.monotonic()
         out = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
-                            seed=seed)
+                            seed=seed, shards=shard_of)
+        plain = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
+                              seed=seed, holm_aware=False)
         ids = hyps["hyp_id"].to_numpy()
         ad = {(i, "lo") for i in ids[out.rejected_lo]}
         ad |= {(i, "up") for i in ids[out.rejected_up]}
@@ -109,6 +136,11 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
             "twin": name, "batch_size": bs,
             "hours_fixed": out.twin_hours_fixed, "hours_adaptive": out.twin_hours_adaptive,
             "hours_ratio": round(out.twin_hours_adaptive / max(out.twin_hours_fixed, 1), 4),
+            "hours_paper": out.twin_hours_paper,
+            "hours_ratio_paper": round(out.twin_hours_adaptive / max(out.twin_hours_paper, 1), 4),
+            # levers, measured one at a time off the full procedure:
+            # every revealed X_0 simulated per node (no B_0 skipping)
+            "ratio_all_x0": round(out.twin_hours_all_x0 / max(out.twin_hours_fixed, 1), 4),
             "rejected_adaptive": len(ad),
             **{f"rejected_fixed_{k}": int(v) for k, v in fixed.items()},
             **{f"kept_of_{k}": len(ad & s) for k, s in fixed_sets.items()},
@@ -122,6 +154,11 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
                 np.where((out.decision == 0).any(axis=1), 0, out.runs_per_hypothesis),
                 len(nodes.index)).sum()),
             "mean_stop_fraction": round(float(out.runs_per_hypothesis.mean()) / m, 4),
+            # without Holm-aware futility (B_0 skipping kept), and the rejections it keeps
+            "ratio_no_holm_aware": round(plain.twin_hours_adaptive
+                                         / max(plain.twin_hours_fixed, 1), 4),
+            "rejected_no_holm_aware": int(plain.rejected_lo.sum() + plain.rejected_up.sum()),
+            **curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets),
             "seconds": round(time.monotonic() - t1, 1),
         })  # fmt: skip
     return rows
@@ -134,6 +171,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--twins", nargs="+", default=None)
     ap.add_argument("--calibrate", type=int, default=0, metavar="R")
     ap.add_argument("--bias-levels", type=float, nargs="+", default=[0.0, 5.0, 10.0, 25.0])
+    ap.add_argument("--curtail", type=float, nargs="*", default=[],
+                    help="also run opt-in curtailment at these epsilons")
     args = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
@@ -172,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
           f"(built in {time.monotonic() - t0:.0f} s)", flush=True)
     for name in args.twins or list(cfg["twins"]):
         for row in compare(st, name, cfg["twins"][name], args.batch_sizes, methods, alpha,
-                           seed):
+                           seed, tuple(args.curtail)):
             rows.append(row)
             print(json.dumps(row), flush=True)
     print(pd.DataFrame(rows).to_markdown(index=False))

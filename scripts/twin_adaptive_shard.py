@@ -45,6 +45,8 @@ def main(sm):
         batch_size=int(runs_cfg.get("batch_size", 100)),
         alpha=float(testing.get("alpha", 0.05)),
         seed=int(sm.params.seed),
+        correction=str(testing.get("correction", "holm")),
+        curtail=float(runs_cfg.get("curtail", 0.0)),
         log=_Log(),
     )
     log.info("shard %s: %s", sm.wildcards.shard, summary)

@@ -13,7 +13,7 @@ from study_helpers import build_study
 from twinfalsify import bounds
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
 from twinfalsify.runs import plan as tp
-from twinfalsify.runs.adaptive import run_adaptive_shard
+from twinfalsify.runs.adaptive import run_adaptive_shard, shard_hypotheses
 from twinfalsify.runs.registry import make_twin
 
 
@@ -50,7 +50,11 @@ def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
 def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin):
     study, twin, runs = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
-    ref = adaptive_test(study.hyps, study.obs, nodes, study.states, batch_size=40)
+    shard_of = np.zeros(len(study.hyps), np.int64)
+    for k in range(len(study.plan.shards)):
+        shard_of[shard_hypotheses(study.hyps, study.plan, k)] = k
+    ref = adaptive_test(study.hyps, study.obs, nodes, study.states, batch_size=40,
+                        shards=shard_of)
     decs, rows, hours = [], [], 0
     for k in range(len(study.plan.shards)):
         r, dec, summary = run_adaptive_shard(

@@ -214,8 +214,12 @@ def test_tiny_run_adaptive_rows(tiny_run, tiny_cfg):
     ratio = ad["twin_hours_adaptive"] / ad["twin_hours_fixed"]
     np.testing.assert_allclose(ad["hours_ratio"], ratio)
     assert (ad["twin_hours_fixed"] == ad["n_nodes"] * tiny_cfg.runs_per_sequence).all()
-    # twin-hours are whole batches per node (the budget 150 is 6 batches of 25)
-    assert (ad["twin_hours_adaptive"] % tiny_cfg.adaptive_batch_size == 0).all()
+    # without B_0 skipping twin-hours are whole batches per node (budget 150 = 6 x 25);
+    # skipping X_0 outside every running B_0 only removes runs; the paper's scheme costs most
+    assert (ad["twin_hours_all_x0"] % tiny_cfg.adaptive_batch_size == 0).all()
+    assert (ad["twin_hours_adaptive"] <= ad["twin_hours_all_x0"]).all()
+    assert (ad["twin_hours_adaptive"] < ad["twin_hours_all_x0"]).any()
+    assert (ad["twin_hours_paper"] >= ad["twin_hours_fixed"]).all()
     # rejections per replicate and bias agree between the two tables (both kinds)
     per = seq.groupby(["replicate", "bias"])["n_rejected"].sum()
     assert (ad.set_index(["replicate", "bias"])["n_rejected"] == per).all()
@@ -239,14 +243,16 @@ def test_tiny_run_adaptive_rows(tiny_run, tiny_cfg):
 def test_adaptive_summary_kept_share_and_target_known_answer():
     """Pooled ratios and the target, worked by hand on two replicates."""
     ad = pd.DataFrame([
-        (0, 1.0, 25, 400, 10, 300, 4000, 0.075, 9, 10, 9, 4, 4, 0, 0.1),
-        (1, 1.0, 25, 400, 10, 500, 4000, 0.125, 10, 10, 9, 4, 3, 2, 0.2),
-        (0, 2.0, 25, 400, 10, 400, 4000, 0.1, 3, 4, 3, 0, 0, 0, 0.1),
-        (1, 2.0, 25, 400, 10, 400, 4000, 0.1, 1, 1, 1, 0, 0, 0, 0.1),
+        (0, 1.0, 25, 400, 10, 300, 4000, 0.075, 9, 10, 9, 4, 4, 0, 0.1, 600, 8000),
+        (1, 1.0, 25, 400, 10, 500, 4000, 0.125, 10, 10, 9, 4, 3, 2, 0.2, 1000, 8000),
+        (0, 2.0, 25, 400, 10, 400, 4000, 0.1, 3, 4, 3, 0, 0, 0, 0.1, 800, 8000),
+        (1, 2.0, 25, 400, 10, 400, 4000, 0.1, 1, 1, 1, 0, 0, 0, 0.1, 800, 8000),
     ], columns=list(cal.ADAPTIVE_COLUMNS))  # fmt: skip
     s = cal.adaptive_summary(ad).set_index("bias")
     assert s.loc[1.0, "hours_ratio"] == pytest.approx(800 / 8000)  # pooled: met at exactly 1/10
     assert s.loc[1.0, "hours_ratio_max"] == pytest.approx(0.125)
+    assert s.loc[1.0, "hours_ratio_all_x0"] == pytest.approx(1600 / 8000)
+    assert s.loc[1.0, "hours_ratio_paper"] == pytest.approx(800 / 16000)
     assert s.loc[1.0, "kept_share_betting"] == pytest.approx(18 / 20)
     assert s.loc[1.0, "kept_share_hoeffding"] == pytest.approx(7 / 8)
     assert s.loc[1.0, "target_hours"] and s.loc[1.0, "target_rejections"]  # 0.9 >= 0.9

@@ -170,3 +170,31 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     twin, n_failed = twin_side(hyps, nodes, Bins())
     assert list(n_failed) == [1, 2]  # run 1 left B_1 in hour 1: cannot enter hypothesis 0
     assert list(twin.group(0)) == [5.0] and list(twin.group(1)) == [5.0]
+
+
+def test_betting_worst_case_uses_one_order_and_the_family_tuning():
+    """Every completion k is evaluated with the hypothesis' own orders and the tuning of the
+    whole family: equal to evaluating the completions on the full set of hypotheses."""
+    from functools import partial
+
+    from twinfalsify.inference.betting import betting_test, default_tune_alpha
+    from twinfalsify.inference.failures import hoeffding_worst_k
+
+    rng = np.random.default_rng(12)
+    h = 40
+    s, _ = _samples(rng, h)
+    s = s.take(np.flatnonzero((s.n > 0) & (s.nhat > 0)))
+    h = len(s)
+    f = np.where(np.arange(h) % 2 == 0, 0, rng.integers(1, 8, h))
+    method = partial(betting_test, seed=3, orders=4)
+    got_lo, got_up = conservative_pvalues(method, s, f)
+    full = partial(betting_test, seed=3, orders=4, tune_alpha=default_tune_alpha(h))
+    ref_lo, ref_up = full(s)
+    _, _, k_lo, k_up = hoeffding_worst_k(s, f)
+    for k in (f, k_lo):
+        ref_lo = np.maximum(ref_lo, full(augment(s, k, s.y_up))[0])
+    for k in (f, k_up):
+        ref_up = np.maximum(ref_up, full(augment(s, k, s.y_lo))[1])
+    np.testing.assert_allclose(got_lo, ref_lo, rtol=2e-3)
+    np.testing.assert_allclose(got_up, ref_up, rtol=2e-3)
+    assert (np.minimum(got_lo, got_up)[f > 0] < 1).sum() >= 2  # completions exercised

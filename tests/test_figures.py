@@ -263,3 +263,24 @@ def test_extend_to_horizon_keeps_the_prefix(st):
               and list(r["actions"][:t]) == list(h.loc[hid, "actions"])
               and list(r["bins"][: t + 1]) == list(h.loc[hid, "bins"])]  # fmt: skip
     assert not longer  # nothing longer on the same path
+
+
+def test_pvalue_figures_mark_the_bootstrap_floor_and_keep_the_holm_line():
+    """p reported at the floor (every resample separated): finite -log10, a Holm line, a note."""
+    rows = []
+    for i in range(12):
+        for side in ("lo", "up"):
+            floor = side == "lo" and i < 5
+            rows.append({"hyp_id": i, "kind": "causal", "outcome": "HR", "t": 1, "side": side,
+                         "method": "bootstrap", "p_value": 1e-6 if floor else 0.5,
+                         "p_floor": floor, "rejected": floor, "correction": "holm"})
+    res = pd.DataFrame(rows)
+    for fig in (figures.pvalue_boxen(res, method="bootstrap"),
+                figures.pvalue_boxen_methods(res)):
+        ax = fig.axes[0]
+        texts = [t.get_text() for t in ax.texts]
+        assert any("5 at p = 1e-06: all resamples separated" in t for t in texts), texts
+        ys = [ln.get_ydata()[0] for ln in ax.get_lines() if len(ln.get_ydata()) == 2]
+        assert any(np.isclose(y, 6.0) for y in ys)  # Holm / floor line at -log10(1e-6)
+        assert np.isfinite(ax.get_ylim()).all() and ax.get_ylim()[1] < 50
+        assert not fig.axes[1].texts  # H_up: nothing at the floor, no note

@@ -131,3 +131,33 @@ def test_reverse_percentile_coverage_is_close_to_nominal():
     lower = 2 * d.twin_hat - d.twin[:, j]
     cover = np.mean(lower <= 2 / 7)
     assert 0.92 <= cover <= 0.98
+
+
+def test_all_resamples_separated_is_reported_at_the_floor_and_flagged():
+    """p = 0 (every resample separates) becomes the floor: > 0 for Holm, flagged in results."""
+    import pandas as pd
+
+    from twinfalsify.falsify import make_methods, run_tests
+    from twinfalsify.inference.bootstrap import P_FLOOR, at_floor
+
+    rng = np.random.default_rng(3)
+    h = 40
+    s = _samples(rng, h, 400, 400, 300)
+    # half the twins far below Q_lo: every resample separates; half at the truth
+    twin = Ragged.from_groups([np.clip(rng.beta(2, 5, 300) - (0.25 if i < h // 2 else 0), 0, 1)
+                               for i in range(h)])
+    s = HypothesisSamples(s.y_lo, s.y_up, s.n, s.follow, twin)
+    p_lo, _ = bootstrap_test(s, seed=1)
+    assert np.all(p_lo > 0)
+    assert np.all(p_lo[: h // 2] == P_FLOOR) and np.all(at_floor(p_lo[: h // 2]))
+    assert not at_floor(p_lo[h // 2:]).any()
+    assert np.all(bootstrap_test(s, seed=1, p_floor=1e-9)[0][: h // 2] == 1e-9)
+    with pytest.raises(ValueError, match="p_floor"):
+        bootstrap_test(s, seed=1, p_floor=0.05)  # not below the resolution 2/B
+    hyps = pd.DataFrame({"hyp_id": np.arange(h), "kind": "causal", "outcome": "HR", "t": 1})
+    res = run_tests(hyps, s, np.zeros(h, np.int64),
+                    make_methods({"bootstrap": {}, "hoeffding": {}}, 1))
+    boot = res[(res["method"] == "bootstrap") & (res["side"] == "lo")]
+    assert boot["p_floor"].to_numpy()[: h // 2].all()
+    assert boot["rejected"].to_numpy()[: h // 2].all()
+    assert not res.loc[res["method"] == "hoeffding", "p_floor"].any()

@@ -20,7 +20,7 @@ Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
 RESULT_COLUMNS = (
     "hyp_id", "kind", "outcome", "t", "side", "method", "n", "n_follow", "nhat", "n_failed",
     "failed_runs", "y_lo", "y_up", "q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat", "propensity",
-    "p_value", "rejected", "correction", "alpha",
+    "p_value", "p_floor", "rejected", "correction", "alpha",
 )  # fmt: skip
 
 
@@ -72,6 +72,8 @@ def run_tests(
             part.insert(4, "side", side)
             part.insert(5, "method", name)
             part["p_value"] = np.asarray(p, float)
+            # True: p is a reporting floor (bootstrap: every resample separated)
+            part["p_floor"] = registry.floored(name, method, part["p_value"].to_numpy())
             parts.append(part)
     out = pd.concat(parts, ignore_index=True)
     out["rejected"] = False

@@ -58,6 +58,7 @@ def pvalue_boxen(
                     label=f"rejected after {part['correction'].iloc[0]}",
                 )
                 ax.legend(loc="upper right", fontsize=8)
+            mark_floor(ax, part)
         ax.set_xlabel("outcome")
         ax.set_ylabel(f"$-\\log_{{10}}$ {label}")
         ax.set_title(f"H_{side}: {label}")
@@ -68,6 +69,20 @@ def pvalue_boxen(
 
 
 # -- shared helpers ----------------------------------------------------------------------------
+
+
+def mark_floor(ax: plt.Axes, part: pd.DataFrame) -> None:
+    """Mark p-values reported at a floor (bootstrap: every resample separated, so the true p is
+    below the bootstrap's resolution and only known to be <= the floor): a dotted line at the
+    floor and a note with their count."""
+    if "p_floor" not in part or not part["p_floor"].any():
+        return
+    fl = part.loc[part["p_floor"].astype(bool), "p_value"]
+    y = -np.log10(float(fl.max()))
+    ax.axhline(y, ls=":", color="0.4", lw=1)
+    ax.text(0.01, 0.99, f"{len(fl)} at p = {fl.max():.0e}: all resamples separated\n"
+            "(true p below the bootstrap's resolution)", transform=ax.transAxes, va="top",
+            ha="left", fontsize=7, color="0.3")
 
 COLORS = {
     "bound": "#4c72b0",  # observational bounds [Q_lo, Q_up]
@@ -367,6 +382,7 @@ def pvalue_boxen_methods(
                                lw=1, label=f"rejected after {part['correction'].iloc[0]}"
                                f" ({len(rej)})")  # fmt: skip
                     ax.legend(loc="upper right", fontsize=8)
+                mark_floor(ax, part)
             ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
             ax.set_ylabel(f"$-\\log_{{10}}\\ p_{{{side}}}$ (dimensionless)")
             ax.set_title(f"{method}: $H_{{{side}}}$", fontsize=10)

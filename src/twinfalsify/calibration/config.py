@@ -28,6 +28,7 @@ ADAPTIVE_COLUMNS = (
     "replicate", "bias", "batch_size", "budget", "n_nodes", "twin_hours_adaptive",
     "twin_hours_fixed", "hours_ratio", "n_rejected", "n_rejected_betting", "n_kept_betting",
     "n_rejected_hoeffding", "n_kept_hoeffding", "undecided_sides", "mean_stop_fraction",
+    "twin_hours_all_x0", "twin_hours_paper",
 )  # fmt: skip
 
 

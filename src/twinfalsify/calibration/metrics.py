@@ -100,6 +100,9 @@ def adaptive_summary(adaptive: pd.DataFrame) -> pd.DataFrame:
             "bias": float(bias), "replicates": len(g), "batch_size": int(g["batch_size"].iloc[0]),
             "mean_twin_hours_adaptive": ha / len(g), "mean_twin_hours_fixed": hf / len(g),
             "hours_ratio": ha / hf, "hours_ratio_max": float(g["hours_ratio"].max()),
+            # the same stopping without B_0 skipping, and against the paper's scheme
+            "hours_ratio_all_x0": float(g["twin_hours_all_x0"].sum()) / hf,
+            "hours_ratio_paper": ha / float(g["twin_hours_paper"].sum()),
             "mean_rejections_adaptive": float(g["n_rejected"].mean()),
         }  # fmt: skip
         for m in ("betting", "hoeffding"):

@@ -28,12 +28,15 @@ from twinfalsify.inference.betting import default_tune_alpha
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.inference.sequential import (
+    HOLM_AWARE,
     UNDECIDED,
     AdaptiveOutcome,
     SequentialState,
     correct_by_family,
     hypothesis_paths,
+    node_needs,
     node_runs,
+    paper_hours,
     run_to_stop,
     twin_runs_indexed,
 )
@@ -280,6 +283,7 @@ def adaptive_state(cfg: CalibrationConfig, rep: Replicate) -> SequentialState:
     return SequentialState(
         rep.hyps, rep.obs, rep.states, budget=int(rep.nodes.x0.shape[0]),
         batch_size=cfg.adaptive_batch_size, alpha=cfg.alpha, seed=rep.seed,
+        holm_aware=cfg.correction in HOLM_AWARE,
     )  # fmt: skip
 
 
@@ -297,15 +301,20 @@ def run_adaptive(
     base = adaptive_state(cfg, rep) if base is None else base
     st = copy.copy(base)  # shallow: the bounds are read-only, the decisions are copied
     st.side, st.stop_batch = base.side.copy(), base.stop_batch.copy()
+    st.fut_level, st.q_hol = base.fut_level.copy(), base.q_hol.copy()
+    st.l_hol, st.u_hol = base.l_hol.copy(), base.u_hol.copy()
     runs = twin_runs_indexed(rep.hyps, nodes, rep.states)
     run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
-    used = node_runs(hypothesis_paths(rep.hyps, nodes.index), per_hyp, len(nodes.index))
+    paths = hypothesis_paths(rep.hyps, nodes.index)
+    used = node_needs(paths, per_hyp, runs.in_b0, len(nodes.index)).sum(axis=1)
     rej_lo, rej_up = correct_by_family(rep.hyps, p_lo, p_up, cfg.alpha, cfg.correction)
     return AdaptiveOutcome(
         p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
         int(used.sum()), int(len(nodes.index) * st.budget),
+        int(node_runs(paths, per_hyp, len(nodes.index)).sum()),
+        paper_hours(rep.hyps, st.budget),
     )  # fmt: skip
 
 
@@ -334,9 +343,11 @@ def adaptive_rows(
     Test rows (method ``betting_sequential``) count as ``evaluate_bias`` does: both sides
     of every parameter set of the kind; testable = n > 0 and nhat > 0 at the stop.
     The adaptive row: twin-hours with prefix reuse (``adaptive_test``: a node costs one
-    hour per run revealed to any hypothesis using it; fixed = nodes x budget) and their
-    ratio, rejections of both kinds, and how many of the fixed betting / Hoeffding
-    test's rejections (same replicate, same twin, ``fixed`` = ``run_tests`` rows) the
+    hour per run simulated for it, i.e. revealed to a running hypothesis using it whose B_0
+    holds the run's X_0; fixed = nodes x budget), the same without B_0 skipping
+    (``twin_hours_all_x0``) and for the paper's scheme (``twin_hours_paper``), the ratio,
+    rejections of both kinds, and how many of the fixed betting / Hoeffding test's rejections
+    (same replicate, same twin, ``fixed`` = ``run_tests`` rows) the
     adaptive test also makes ("kept": same parameter set and side).
     """
     hyps = rep.hyps
@@ -362,6 +373,7 @@ def adaptive_rows(
         outcome.twin_hours_adaptive / outcome.twin_hours_fixed, int(rej.sum()), *counts,
         int((outcome.decision == UNDECIDED).sum()),
         float(np.mean(outcome.runs_per_hypothesis / budget)),
+        outcome.twin_hours_all_x0, outcome.twin_hours_paper,
     )  # fmt: skip
     out = pd.DataFrame([row], columns=list(ADAPTIVE_COLUMNS))
     for col in ("n_rejected_betting", "n_kept_betting", "n_rejected_hoeffding", "n_kept_hoeffding"):

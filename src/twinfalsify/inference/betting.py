@@ -8,10 +8,13 @@ capital processes (WSR 2024, Sec. 4, "hedged capital", one-sided halves):
     K-_t(m) = prod_{i<=t} (1 - lambda-_i(m) (x_i - m)),   lambda-_i(m) = min(lambda_i, c / (1 - m)),
 
 with the predictable plug-in bet tuned for a fixed sample size n (WSR 2024, Sec. 5.1
-and Remark "fixed-n"): lambda_i = min(c, sqrt(2 log(1/delta0) / (n sigma2_{i-1}))),
+and Remark "fixed-n"): lambda_i = sqrt(2 log(1/delta0) / (n sigma2_{i-1})),
 mu_i = (1/2 + sum_{j<=i} x_j) / (i + 1), sigma2_i = (1/4 + sum_{j<=i} (x_j - mu_j)^2) / (i + 1),
 sigma2_0 = 1/4, c = 0.9 (WSR use 1/2 or 3/4; any c < 1 is valid, 0.9 is
-tighter at the small levels Holm needs, measured in docs/statistics.md).
+tighter at the small levels Holm needs, measured in docs/statistics.md). As in WSR's
+Theorem 3 the bet is truncated only at c/m (c/(1-m)), never at c itself: near a
+boundary (m small for K+) bets above 1 are allowed and still keep every factor
+>= 1 - c > 0, which is what makes small skewed samples near 0 or 1 tight.
 lambda_i depends on x_1..x_{i-1} only, so when the true
 mean is <= m (resp. >= m) K+ (K-) is a non-negative supermartingale with K_0 = 1
 and Ville's inequality gives P(max_{t<=n} K_t >= 1/delta) <= delta. Hence the
@@ -64,22 +67,36 @@ C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size level
 
 @dataclass
 class OrderedSide:
-    """One side's rescaled sample of many hypotheses, ordered, with its bets (flat arrays)."""
+    """One side's rescaled sample of many hypotheses, ordered, with its bets (flat arrays).
+
+    ``copies`` K > 1: the side holds K independently ordered copies of G groups, copy-major
+    (group k G + g is copy k of group g); :func:`log_capital` then returns, per group, the
+    log of the *average over the copies* of the terminal capital (module doc, "Order").
+    """
 
     x: np.ndarray  # (N,) values in [0, 1], group after group
     lam: np.ndarray  # (N,) predictable bets lambda_i (before the m-dependent truncation)
-    offsets: np.ndarray  # (G + 1,)
+    offsets: np.ndarray  # (K G + 1,)
+    copies: int = 1
 
     @property
     def sizes(self) -> np.ndarray:
         return np.diff(self.offsets)
 
+    @property
+    def n_groups(self) -> int:
+        """G: groups per copy."""
+        return (len(self.offsets) - 1) // self.copies
+
     def take(self, groups: np.ndarray) -> OrderedSide:
-        """The listed groups (sorted indices), compacted."""
-        keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), groups), self.sizes)
-        sizes = self.sizes[groups]
+        """The listed groups (sorted indices, every copy), compacted."""
+        g = self.n_groups
+        rows = (np.arange(self.copies)[:, None] * g + np.asarray(groups)[None, :]).ravel()
+        keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), rows), self.sizes)
+        sizes = self.sizes[rows]
         return OrderedSide(
-            self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+            self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            self.copies,
         )
 
 
@@ -104,7 +121,9 @@ def plugin_bets(
 ) -> np.ndarray:
     """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
 
-    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only.
+    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only. Not
+    truncated here: ``c`` truncation is m-dependent (c/m, c/(1-m), in :func:`log_capital`);
+    ``c`` is accepted for backward compatibility and ignored.
     """
     sizes = np.diff(offsets)
     gid, t = _layout(offsets) if layout is None else layout
@@ -115,7 +134,7 @@ def plugin_bets(
     prev[offsets[:-1][sizes > 0]] = 0.25
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
-    return np.minimum(c, np.sqrt(k[gid] / prev))
+    return np.sqrt(k[gid] / prev)
 
 
 _CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)
@@ -137,8 +156,19 @@ def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool =
                 c: float = C_TRUNC) -> np.ndarray:
     """log max_{0<=t<=n} K^{sign}_t(m) per group (sign +1: K+, -1: K-); m has shape (G,).
 
-    Evaluated chunk by chunk of groups (cache-sized working arrays).
+    ``running_max=False``: log K_n (terminal). A side with K copies gives
+    log((1/K) sum_k K^(k)_n(m)), terminal only (the running maximum of an average over
+    different orders is not covered by Ville's inequality). Evaluated chunk by chunk of
+    groups (cache-sized working arrays).
     """
+    if side.copies > 1:
+        if running_max:
+            raise ValueError("log_capital: several orders need the terminal capital")
+        one = OrderedSide(side.x, side.lam, side.offsets)
+        per = log_capital(one, np.tile(np.asarray(m, float), side.copies), sign, False, c)
+        per = per.reshape(side.copies, -1)
+        top = per.max(axis=0)
+        return top + np.log(np.mean(np.exp(per - top), axis=0))
     sizes = side.sizes
     m = np.asarray(m, float)
     with np.errstate(divide="ignore"):
@@ -165,25 +195,65 @@ def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool =
     return out
 
 
-def _order_keys(sizes: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+_M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def _mix64(z: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser (Steele et al. 2014): a bijective avalanche hash of uint64."""
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int,
+                salt: int) -> np.ndarray:
     """A uniformly random permutation within every group (flat indices), seeded.
 
-    Sort by group id + U(0, 1) key: within a group the order is that of i.i.d.
-    uniform keys, i.e. uniformly random (ties have probability ~0).
+    Sort by group id + U key, U a hash of (seed, salt, hypothesis key, copy, position in
+    the group): within a group the order is that of i.i.d.-like uniform keys, i.e. a
+    uniformly random permutation, independent of the data. Because U depends on the
+    hypothesis' own key and the position only, a hypothesis gets the same order whatever
+    other hypotheses are tested with it, and values appended at the end (failed-run
+    completions) leave the relative order of the others unchanged.
     """
-    gid = np.repeat(np.arange(len(sizes), dtype=float), sizes)
-    return np.argsort(gid + rng.random(len(gid)), kind="stable")
+    sizes = np.asarray(sizes, np.int64)
+    gid = np.repeat(np.arange(len(sizes)), sizes)
+    pos = np.arange(int(sizes.sum()), dtype=np.int64) - np.repeat(
+        np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
+    with np.errstate(over="ignore"):
+        base = _mix64(np.array([(int(seed) & 0xFFFFFFFF) << 8 | salt], dtype=np.uint64))
+        hk = _mix64(base ^ np.asarray(keys, np.int64).astype(np.uint64))
+        hk = _mix64(hk ^ (np.asarray(copy, np.int64).astype(np.uint64) << np.uint64(40)))
+        u = _mix64(hk[gid] ^ pos.astype(np.uint64))
+    frac = (u >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)  # [0, 1)
+    return np.lexsort((frac, gid))
+
+
+def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.ndarray]:
+    """K copies of the samples, copy-major, keeping every hypothesis' key; and copy index."""
+    def tile_r(r: Ragged) -> Ragged:
+        sizes = np.tile(r.sizes, k)
+        return Ragged(np.tile(r.values, k),
+                      np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+    t = HypothesisSamples(np.tile(samples.y_lo, k), np.tile(samples.y_up, k),
+                          np.tile(samples.n, k), tile_r(samples.follow), tile_r(samples.twin),
+                          keys=np.tile(samples.hyp_keys, k))
+    return t, np.repeat(np.arange(k), len(samples))
 
 
 def ordered_sides(
-    samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC
+    samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC,
+    orders: int = 1,
 ) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
     """(Y_lo, Y_up, twin) rescaled to [0, 1], in seeded random order, with their bets.
 
     The observational sample is materialised here (followers, then n - n_follow fill
     values) because every position carries its own bet; Y_lo and Y_up share the
-    order. The observational and twin orders use independent streams spawned from
-    ``seed``, are built in two threads, chunk by chunk of hypotheses (cache-sized).
+    order. The observational and twin orders are independent hashes of (seed, side,
+    hypothesis key, copy, position) (``_order_keys``), built in two threads, chunk by chunk
+    of hypotheses (cache-sized). ``orders`` K > 1: K independently ordered copies.
     """
     h = len(samples)
     width = samples.width
@@ -191,7 +261,11 @@ def ordered_sides(
         bad = np.flatnonzero(~(width > 0))[:5]
         raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
     d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
-    rng_obs, rng_tw = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
+    copy = np.zeros(h, np.int64)
+    if orders > 1:
+        samples, copy = _tile(samples, int(orders))
+        d0, h, width = np.tile(d0, int(orders)), len(samples), samples.width
+    keys = samples.hyp_keys
     n = samples.n.astype(np.int64)
     nf = samples.n_follow
     offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
@@ -211,7 +285,7 @@ def ordered_sides(
             xf = np.zeros(len(gid))
             xf[is_f] = (np.clip(fv, y_lo[h0:h1][fg], samples.y_up[h0:h1][fg])
                         - y_lo[h0:h1][fg]) / width[h0:h1][fg]
-            perm = _order_keys(n[h0:h1], rng_obs)
+            perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], seed, 1)
             xf, fill = xf[perm], ~is_f[perm]
             sl = slice(offs[h0], offs[h1])
             x_lo[sl] = np.where(fill, 0.0, xf)
@@ -229,14 +303,16 @@ def ordered_sides(
             g = np.repeat(np.arange(h1 - h0), sizes[h0:h1])
             v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
                  - y_lo[h0:h1][g]) / width[h0:h1][g]
-            xt[sl] = v[_order_keys(sizes[h0:h1], rng_tw)]
+            xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], seed, 2)]
             lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c)
         return OrderedSide(xt, lt, twin.offsets)
 
     with ThreadPoolExecutor(2) as pool:
         f_obs, f_tw = pool.submit(obs), pool.submit(twin_side)
         (lo, up), tw = f_obs.result(), f_tw.result()
-    return lo, up, tw
+    k = max(int(orders), 1)
+    return (OrderedSide(lo.x, lo.lam, lo.offsets, k), OrderedSide(up.x, up.lam, up.offsets, k),
+            OrderedSide(tw.x, tw.lam, tw.offsets, k))
 
 
 def _crossing(
@@ -317,6 +393,7 @@ def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
     return HypothesisSamples(
         y_lo=samples.y_lo[keep], y_up=samples.y_up[keep], n=samples.n[keep],
         follow=_ragged_subset(samples.follow, keep), twin=_ragged_subset(samples.twin, keep),
+        keys=samples.hyp_keys[keep],
     )
 
 
@@ -325,23 +402,43 @@ def default_tune_alpha(h: int) -> float:
     return 0.05 / (2 * max(int(h), 1))
 
 
+ORDERS = 16  # default K for betting_test: seed-to-seed spread measured in docs/statistics.md
+_CHUNK_ELEMENTS = 1 << 23  # K (n + nhat) summed per chunk of hypotheses: bounds memory
+
+
+def _running_max(running_max: bool | None, orders: int) -> bool:
+    if orders < 1:
+        raise ValueError(f"betting: orders must be >= 1, got {orders}")
+    if running_max is None:
+        return orders == 1
+    if running_max and orders > 1:
+        raise ValueError("betting: running_max needs orders = 1 (averaging over orders uses "
+                         "the terminal capital)")
+    return bool(running_max)
+
+
 def betting_test(
     samples: HypothesisSamples,
     *,
     tune_alpha: float | None = None,
     seed: int = 0,
-    running_max: bool = True,
+    orders: int = ORDERS,
+    running_max: bool | None = None,
     c: float = C_TRUNC,
     tol: float = 1e-3,
     max_iter: int = 100,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
 
-    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``tol``:
-    accuracy of log K* (p's relative accuracy), p is never understated.
+    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``orders``: K
+    seeded sample orders whose terminal capitals are averaged (K = 1: one order, running
+    maximum by default); ``tol``: accuracy of log K* (p's relative accuracy), p is never
+    understated. Hypotheses are processed in chunks (memory); a hypothesis' orders depend
+    on its key only, so chunking does not change any p-value.
     """
     h = len(samples)
     p_lo, p_up = np.ones(h), np.ones(h)
+    rmax = _running_max(running_max, int(orders))
     ok = (samples.n > 0) & (samples.nhat > 0)
     if not ok.any():
         return p_lo, p_up
@@ -349,15 +446,22 @@ def betting_test(
     if not 0 < alpha0 < 1:
         raise ValueError(f"betting: tune_alpha must be in (0, 1), got {alpha0}")
     sub = samples if ok.all() else _subset(samples, ok)
-    lo, up, tw = ordered_sides(sub, alpha0 / 2, seed=seed, c=c)
-    r = sub.width
-    q_lo = (sub.q_lo_hat - sub.y_lo) / r
-    q_up = (sub.q_up_hat - sub.y_lo) / r
-    q_tw = (sub.q_twin_hat - sub.y_lo) / r
-    with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
-        f_lo = pool.submit(_crossing, lo, tw, 0.5 * (q_lo + q_tw), running_max, c, tol, max_iter)
-        f_up = pool.submit(_crossing, tw, up, 0.5 * (q_up + q_tw), running_max, c, tol, max_iter)
-        k_lo, k_up = f_lo.result(), f_up.result()
+    size = int(orders) * (sub.n + sub.nhat)
+    cum = np.cumsum(size)
+    cuts = np.unique(np.searchsorted(cum, np.arange(_CHUNK_ELEMENTS, cum[-1], _CHUNK_ELEMENTS)))
+    cuts = cuts[(cuts > 0) & (cuts < len(sub))]
+    k_lo, k_up = np.zeros(len(sub)), np.zeros(len(sub))
+    for idx in np.split(np.arange(len(sub)), cuts):
+        part = sub if len(idx) == len(sub) else sub.take(idx)
+        lo, up, tw = ordered_sides(part, alpha0 / 2, seed=seed, c=c, orders=int(orders))
+        r = part.width
+        q_lo = (part.q_lo_hat - part.y_lo) / r
+        q_up = (part.q_up_hat - part.y_lo) / r
+        q_tw = (part.q_twin_hat - part.y_lo) / r
+        with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
+            f_lo = pool.submit(_crossing, lo, tw, 0.5 * (q_lo + q_tw), rmax, c, tol, max_iter)
+            f_up = pool.submit(_crossing, tw, up, 0.5 * (q_up + q_tw), rmax, c, tol, max_iter)
+            k_lo[idx], k_up[idx] = f_lo.result(), f_up.result()
     p_lo[ok] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
     p_up[ok] = np.minimum(1.0, 2.0 * np.exp(-k_up))
     return p_lo, p_up
@@ -366,7 +470,7 @@ def betting_test(
 def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: bool, c: float,
            n_iter: int = 42) -> np.ndarray:
     """sup{m : log max K+(m) >= level} (sign +1) or inf{m : log max K-(m) >= level} (sign -1)."""
-    g = len(side.offsets) - 1
+    g = side.n_groups
     a, b = np.zeros(g), np.ones(g)  # sign +1: K+ >= level holds at a, fails at b
     for _ in range(n_iter):
         mid = 0.5 * (a + b)
@@ -380,29 +484,31 @@ def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: boo
 
 def betting_bounds(
     samples: HypothesisSamples, alpha: float | np.ndarray, *, tune_alpha: float | None = None,
-    seed: int = 0, running_max: bool = True, c: float = C_TRUNC,
+    seed: int = 0, orders: int = 1, running_max: bool | None = None, c: float = C_TRUNC,
 ) -> dict[str, np.ndarray]:
     """One-sided (1 - alpha/2) bounds in outcome units, for the union rule at level alpha.
 
     ``alpha``: a scalar or one level per hypothesis.
-    Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same order and
-    bets as :func:`betting_test` (same seed), so the rule on these bounds rejects at
-    alpha exactly when the p-value is <= alpha (up to the bisection's resolution).
+    Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same orders and
+    bets as :func:`betting_test` with the same seed and ``orders`` (default here: one order,
+    running maximum, the WSR interval), so the rule on these bounds rejects at alpha
+    exactly when that p-value is <= alpha (up to the bisection's resolution).
     Requires n > 0 and nhat > 0 for every hypothesis.
     """
     if np.any(samples.n == 0) or np.any(samples.nhat == 0):
         raise ValueError("betting_bounds: every hypothesis needs n > 0 and nhat > 0")
     h = len(samples)
+    rmax = _running_max(running_max, int(orders))
     alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
-    lo, up, tw = ordered_sides(samples, alpha0 / 2, seed=seed, c=c)
+    lo, up, tw = ordered_sides(samples, alpha0 / 2, seed=seed, c=c, orders=int(orders))
     alpha = np.broadcast_to(np.asarray(alpha, float), (h,))
     if np.any(~((alpha > 0) & (alpha <= 1))):
         raise ValueError("betting_bounds: alpha must be in (0, 1]")
     lev = np.log(2.0 / alpha)
     r, y0 = samples.width, samples.y_lo
     return {
-        "lower_lo": y0 + r * _bound(lo, lev, +1, running_max, c),
-        "upper_up": y0 + r * _bound(up, lev, -1, running_max, c),
-        "lower_twin": y0 + r * _bound(tw, lev, +1, running_max, c),
-        "upper_twin": y0 + r * _bound(tw, lev, -1, running_max, c),
+        "lower_lo": y0 + r * _bound(lo, lev, +1, rmax, c),
+        "upper_up": y0 + r * _bound(up, lev, -1, rmax, c),
+        "lower_twin": y0 + r * _bound(tw, lev, +1, rmax, c),
+        "upper_twin": y0 + r * _bound(tw, lev, -1, rmax, c),
     }

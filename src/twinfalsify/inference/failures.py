@@ -47,6 +47,7 @@ from functools import partial
 
 import numpy as np
 
+from twinfalsify.inference.betting import betting_test, default_tune_alpha
 from twinfalsify.inference.hoeffding import hoeffding_pvalue, hoeffding_test
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
@@ -66,7 +67,7 @@ def augment(samples: HypothesisSamples, k: np.ndarray, value: np.ndarray) -> Hyp
     ]
     return HypothesisSamples(
         y_lo=samples.y_lo, y_up=samples.y_up, n=samples.n, follow=samples.follow,
-        twin=Ragged.from_groups(groups),
+        twin=Ragged.from_groups(groups), keys=samples.keys,
     )  # fmt: skip
 
 
@@ -147,6 +148,7 @@ def conservative_pvalues(
     if factor is not None:
         p_lo, p_up, _, _ = hoeffding_worst_k(samples, f, factor)
         return p_lo, p_up
+    method = _family_tuned(method, len(samples))
     p0_lo, p0_up = base if base is not None else method(samples)
     p_lo, p_up = np.asarray(p0_lo, float).copy(), np.asarray(p0_up, float).copy()
     idx = np.flatnonzero(f > 0)
@@ -166,6 +168,18 @@ def conservative_pvalues(
     for k in _unique_rows(candidates_up):
         p_up[idx] = np.maximum(p_up[idx], method(augment(sub, k, sub.y_lo))[1])
     return p_lo, p_up
+
+
+def _family_tuned(method: Method, h: int) -> Method:
+    """Betting tunes its bets by default at 0.05 / (2H) of the samples it is given; the
+    completions below are evaluated on a subset, so fix the tuning of the whole family (one
+    tuning for every k; the orders are per hypothesis already, ``betting._order_keys``)."""
+    if isinstance(method, partial) and method.func is betting_test and \
+            method.keywords.get("tune_alpha") is None:
+        return partial(method, tune_alpha=default_tune_alpha(h))
+    if method is betting_test:
+        return partial(betting_test, tune_alpha=default_tune_alpha(h))
+    return method
 
 
 def _unique_rows(rows: list[np.ndarray]) -> list[np.ndarray]:

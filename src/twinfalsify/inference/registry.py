@@ -18,12 +18,12 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     "hoeffding": ("twinfalsify.inference.hoeffding:hoeffding_test", ("factor",), False),
     "bootstrap": (
         "twinfalsify.inference.bootstrap:bootstrap_test",
-        ("n_resamples", "min_n", "kind", "variant"),
+        ("n_resamples", "min_n", "kind", "variant", "p_floor"),
         True,
     ),
     "betting": (
         "twinfalsify.inference.betting:betting_test",
-        ("tune_alpha", "running_max", "c", "tol", "max_iter"),
+        ("tune_alpha", "orders", "running_max", "c", "tol", "max_iter"),
         True,
     ),
     "bernstein": ("twinfalsify.inference.bernstein:bernstein_test", (), False),
@@ -49,3 +49,14 @@ def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
     if seeded:
         opts["seed"] = int(seed)
     return partial(fn, **opts)
+
+
+def floored(name: str, method: Method, p: np.ndarray) -> np.ndarray:
+    """(len(p),) bool: p is a reporting floor, not a measurement (bootstrap: every resample
+    separated, ``inference.bootstrap.at_floor``); False for the other methods."""
+    if name != "bootstrap":
+        return np.zeros(len(p), dtype=bool)
+    from twinfalsify.inference.bootstrap import P_FLOOR, at_floor
+
+    floor = method.keywords.get("p_floor", P_FLOOR) if isinstance(method, partial) else P_FLOOR
+    return at_floor(p, floor)

@@ -80,16 +80,29 @@ class HypothesisSamples:
     n: np.ndarray  # (H,) int64
     follow: Ragged  # (H groups) clipped outcomes of followers
     twin: Ragged  # (H groups) clipped twin outcomes
+    # (H,) identity of each hypothesis for order-dependent methods (betting): a hypothesis
+    # keeps its seeded sample order whatever other hypotheses are tested with it (subsets,
+    # failed-run completions). None: 0..H-1.
+    keys: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         h = len(self.y_lo)
         if not (len(self.y_up) == len(self.n) == len(self.follow) == len(self.twin) == h):
             raise ValueError("HypothesisSamples: all parts must describe the same H hypotheses")
+        if self.keys is not None and len(self.keys) != h:
+            raise ValueError("HypothesisSamples: keys must have one entry per hypothesis")
         if np.any(self.follow.sizes > self.n):
             raise ValueError("HypothesisSamples: more followers than entering trajectories")
 
     def __len__(self) -> int:
         return len(self.y_lo)
+
+    @property
+    def hyp_keys(self) -> np.ndarray:
+        """``keys`` as int64, defaulting to 0..H-1."""
+        if self.keys is None:
+            return np.arange(len(self), dtype=np.int64)
+        return np.asarray(self.keys, dtype=np.int64)
 
     @property
     def n_follow(self) -> np.ndarray:
@@ -166,6 +179,7 @@ class HypothesisSamples:
             n=self.n,
             follow=self.follow,
             twin=self.twin,
+            keys=self.keys,
         )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:
@@ -176,4 +190,5 @@ class HypothesisSamples:
             n=self.n[index],
             follow=self.follow.take(index),
             twin=self.twin.take(index),
+            keys=self.hyp_keys[index],
         )

@@ -7,9 +7,10 @@ for a candidate mean m,
 
     K+_t(m) = prod_{i<=t} (1 + min(lambda_i, c/m) (x_i - m)),
     K-_t(m) = prod_{i<=t} (1 - min(lambda_i, c/(1-m)) (x_i - m)),
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))),
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))),
 
-with mu_i, sigma2_i the running plug-in estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
+(truncated only at c/m, c/(1-m), WSR 2024 Thm 3) with mu_i, sigma2_i the running plug-in
+estimates of ``betting.plugin_bets`` (sigma2_0 = 1/4).
 Unlike the fixed-n bets, lambda_i depends on neither n nor the final sample: it uses
 x_1..x_{i-1} and i only. Time runs over *all* runs in X_0 order (a run that does not enter
 contributes the factor 1), so K is a non-negative supermartingale in the filtration of the
@@ -33,14 +34,15 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
     evaluation, no search).
 (b) futility: no continuation of the twin data up to the budget can make the rule reject at
     alpha (the most lenient Holm threshold). Every future factor of K-_twin(L) is at most
-    1 + lambda_bar L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every future bet,
-    ``future_bet_bound``: the bets shrink with the accumulated variance), and only runs whose
+    1 + min(lambda_bar, c/(1-L)) L (x = 0, i.e. the outcome at y_lo, with lambda_bar >= every
+    future bet, ``future_bet_bound``: the bets shrink with the accumulated variance; the K-
+    bet at L is truncated at c/(1-L)), and only runs whose
     real X_0 lies in B_0 can ever enter, so the best reachable capital is
-    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + lambda_bar L)^r), r = remaining runs with X_0
-    in B_0.
+    max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + min(lambda_bar, c/(1-L)) L)^r), r = remaining
+    runs with X_0 in B_0.
     This bounds the issue's "every remaining run at y_lo" path (and every other path), so
     stopping never loses a rejection the full budget could have made. Mirror for H_up with
-    factor 1 + lambda_bar (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
+    factor 1 + min(lambda_bar, c/U) (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
 
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
@@ -53,6 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy.special import erfc
 
 from twinfalsify.bounds import ObservationalSide, TwinNodes
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded
@@ -70,16 +73,18 @@ from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
-UNDECIDED, REJECTED, FUTILE = 0, 1, 2
+UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
+HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
 
 
 def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
             index: np.ndarray | None = None) -> np.ndarray:
     """WSR's predictable plug-in bets for a confidence sequence, per group.
 
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) (WSR 2024, eq. for
-    the "predictable plug-in" CS); ``i`` is the 1-based position among the group's values
-    (``index`` overrides it; positions only, never the group size). delta0: one per group.
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) (WSR 2024, eq. for
+    the "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later);
+    ``i`` is the 1-based position among the group's values (``index`` overrides it;
+    positions only, never the group size). delta0: one per group.
     """
     sizes = np.diff(offsets)
     gid, t = _layout(offsets)
@@ -90,7 +95,7 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     prev[offsets[:-1][sizes > 0]] = 0.25
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
-    return np.minimum(c, np.sqrt(k / prev))
+    return np.sqrt(k / prev)
 
 
 @dataclass(frozen=True)
@@ -184,6 +189,13 @@ class SequentialState:
     c: float = C_TRUNC
     n_family: np.ndarray | None = None
     only: np.ndarray | None = None  # (H,) bool: hypotheses to run (others never receive runs)
+    holm_aware: bool = True  # futility at the Holm threshold a side can still face (doc (c))
+    # (H,) labels: primary-futile sides are counted within (kind, label), e.g. the shard that
+    # runs the hypothesis (shards share nothing); None: within the kind (the whole family)
+    holm_scope: np.ndarray | None = None
+    # opt-in curtailment (doc (d)): stop a side when the estimated probability that the
+    # full budget rejects it at its Holm-aware level is below this epsilon (0: off)
+    curtail: float = 0.0
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -220,9 +232,20 @@ class SequentialState:
         self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
         self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
         self.side = np.zeros((h, 2), dtype=np.int8)
+        # level at which a side was found futile: alpha ("primary": p > alpha for sure) or a
+        # Holm-aware level alpha / 2^q < alpha (p > that level for sure); 0 if not futile
+        self.fut_level = np.zeros((h, 2))
+        # Holm-aware futility: bounds at level alpha / 2^q (q = 0: the alpha bounds above)
+        self.q_hol = np.zeros((h, 2), dtype=np.int64)
+        self.l_hol, self.u_hol = self.l_fut.copy(), self.u_fut.copy()
+        kind = self.hyps["kind"].to_numpy() if "kind" in self.hyps else np.zeros(h)
+        scope = np.zeros(h, np.int64) if self.holm_scope is None else np.asarray(self.holm_scope)
+        label = pd.Series(kind).astype(str) + "|" + pd.Series(scope).astype(str)
+        self.family = pd.factorize(label)[0]
         self.stop_batch = np.full(h, -1, dtype=np.int64)
         no_obs = self.obs.n == 0  # p = 1 by rule: nothing to learn from the twin
         self.side[no_obs] = FUTILE
+        self.fut_level[no_obs] = self.alpha
         self.stop_batch[no_obs] = 0
         if self.only is not None:
             self.stop_batch[~np.asarray(self.only, bool)] = 0
@@ -265,22 +288,111 @@ class SequentialState:
         rej_up = log_capital(tw, self.u_star[act], +1, True, self.c) >= lev_star
         # (b) futility at alpha: best reachable capital up to the budget
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
-        lev = np.log(2.0 / self.alpha)
-        lf, uf = self.l_fut[act], self.u_fut[act]
         lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
-        best_lo = np.maximum(
-            log_capital(tw, lf, -1, True, self.c),
-            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(lam * lf))
-        best_up = np.maximum(
-            log_capital(tw, uf, +1, True, self.c),
-            log_capital(tw, uf, +1, False, self.c) + r * np.log1p(lam * (1 - uf)))
-        new = np.stack([np.where(rej_lo, REJECTED, np.where(best_lo < lev, FUTILE, UNDECIDED)),
-                        np.where(rej_up, REJECTED, np.where(best_up < lev, FUTILE, UNDECIDED))],
+        lev = np.full(len(act), np.log(2.0 / self.alpha))
+        best_lo, best_up = self._best(tw, act, r, lam, self.l_fut[act], self.u_fut[act])
+        fut_lo, fut_up = best_lo < lev, best_up < lev
+        lvl_lo = np.where(fut_lo, self.alpha, 0.0)
+        lvl_up = np.where(fut_up, self.alpha, 0.0)
+        if self.holm_aware:
+            # (c) Holm-aware futility: F sides of the family are primary-futile (p > alpha
+            # for sure), so a side can only be rejected at a Holm threshold <= alpha/(F+1)
+            # (its rank is at most 2H_f - F); quantised to alpha/2^q >= alpha/(F+1)
+            self._refresh_holm_bounds(act)
+            q_lo, q_up = self.q_hol[act, 0], self.q_hol[act, 1]
+            a_lo, a_up = self.alpha / 2.0 ** q_lo, self.alpha / 2.0 ** q_up
+            h_lo, h_up = self._best(tw, act, r, lam, self.l_hol[act], self.u_hol[act])
+            hol_lo = (q_lo > 0) & ~fut_lo & (h_lo < np.log(2.0 / a_lo))
+            hol_up = (q_up > 0) & ~fut_up & (h_up < np.log(2.0 / a_up))
+            fut_lo, fut_up = fut_lo | hol_lo, fut_up | hol_up
+            lvl_lo = np.where(hol_lo, a_lo, lvl_lo)
+            lvl_up = np.where(hol_up, a_up, lvl_up)
+        new = np.stack([np.where(rej_lo, REJECTED, np.where(fut_lo, FUTILE, UNDECIDED)),
+                        np.where(rej_up, REJECTED, np.where(fut_up, FUTILE, UNDECIDED))],
                        axis=1).astype(np.int8)
+        if self.curtail > 0:
+            cur = self._curtailed(runs, tw, nhat, act, j, lam)
+            new[:, 0] = np.where((new[:, 0] == UNDECIDED) & cur[:, 0], CURTAILED, new[:, 0])
+            new[:, 1] = np.where((new[:, 1] == UNDECIDED) & cur[:, 1], CURTAILED, new[:, 1])
+        newly = und & (new == FUTILE)
         self.side[act] = np.where(und, new, self.side[act])
+        lv = np.stack([lvl_lo, lvl_up], axis=1)
+        self.fut_level[act] = np.where(newly, lv, self.fut_level[act])
         # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
         done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
         self.stop_batch[act[done]] = b
+
+    def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
+              lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
+        with np.errstate(divide="ignore"):  # L = 1 or U = 0: the cap is infinite
+            cap_lo, cap_up = self.c / (1 - lf), self.c / uf
+        best_lo = np.maximum(
+            log_capital(tw, lf, -1, True, self.c),
+            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam, cap_lo) * lf))
+        best_up = np.maximum(
+            log_capital(tw, uf, +1, True, self.c),
+            log_capital(tw, uf, +1, False, self.c)
+            + r * np.log1p(np.minimum(lam, cap_up) * (1 - uf)))
+        return best_lo, best_up
+
+    def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
+                   j: int, lam_bar: np.ndarray) -> np.ndarray:
+        """(len(act), 2) bool: P(the full budget rejects at the side's Holm-aware level) <
+        ``curtail``, under a normal approximation of the remaining log-capital increments.
+
+        At m = L (H_lo; U for H_up) at level a = alpha / 2^q, each remaining run with X_0 in
+        B_0 enters with the observed rate pi = nhat / (revealed runs with X_0 in B_0) and
+        then adds g(x) = log(1 - min(lam, c/(1-L)) (x - L)), x drawn from the values seen so
+        far, lam = the largest future bet (``future_bet_bound``); so
+        log K_budget ~ N(log K_tau + r mu, r v) with mu, v the mean and variance of the
+        per-run increment (0 w.p. 1 - pi). A heuristic: it never affects validity (stopping
+        only forgoes power), and its power cost is measured (docs/sequential.md).
+        """
+        gid = np.repeat(np.arange(len(act)), tw.sizes)
+        seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)
+        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
+        pi = np.where(seen_b0 > 0, nhat / np.maximum(seen_b0, 1), 0.0)
+        out = np.zeros((len(act), 2), dtype=bool)
+        for col, sign in ((0, -1), (1, +1)):
+            q = self.q_hol[act, col]
+            m = (self.l_hol if col == 0 else self.u_hol)[act]
+            lev = np.log(2.0 * 2.0 ** q / self.alpha)
+            cap = self.c / (1.0 - m) if sign < 0 else self.c / np.maximum(m, 1e-12)
+            bet = np.minimum(lam_bar, cap)
+            g = np.log1p(np.clip(sign * bet[gid] * (tw.x - m[gid]), -self.c, None))
+            n_ok = np.maximum(nhat, 1)
+            g1 = np.bincount(gid, g, len(act)) / n_ok
+            g2 = np.bincount(gid, g * g, len(act)) / n_ok
+            mu, var = pi * g1, np.maximum(pi * g2 - (pi * g1) ** 2, 1e-12)
+            now = log_capital(tw, m, sign, False, self.c)
+            z = (now + r * mu - lev) / np.sqrt(r * var + 1e-12)
+            prob = 0.5 * erfc(-z / np.sqrt(2.0))
+            out[:, col] = (nhat >= 2) & (r > 0) & (prob < self.curtail)
+        return out
+
+    def primary_futile(self) -> np.ndarray:
+        """(H,) F: primary-futile sides (p > alpha for sure) in each hypothesis' family."""
+        prim = ((self.side == FUTILE) & (self.fut_level >= self.alpha)).sum(axis=1)
+        per_family = np.bincount(self.family, weights=prim, minlength=self.family.max() + 1)
+        return per_family[self.family].astype(np.int64)
+
+    def _refresh_holm_bounds(self, act: np.ndarray) -> None:
+        """q = floor(log2(F + 1)) per active side; recompute L, U at alpha / 2^q where q grew."""
+        f = self.primary_futile()[act]
+        q = np.floor(np.log2(f + 1.0)).astype(np.int64)
+        for col, side, sign in ((0, self.lo, +1), (1, self.up, -1)):
+            grew = q > self.q_hol[act, col]
+            if not grew.any():
+                continue
+            g = act[grew]
+            self.q_hol[g, col] = q[grew]
+            lev = np.log(2.0 * 2.0 ** q[grew] / self.alpha)
+            b = _bound(side.take(g), lev, sign, True, self.c)
+            if col == 0:
+                self.l_hol[g] = b
+            else:
+                self.u_hol[g] = b
 
     def runs_used(self) -> np.ndarray:
         """(H,) runs revealed to each hypothesis at its stop (budget if still running)."""
@@ -317,17 +429,18 @@ def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
                      c: float = C_TRUNC) -> np.ndarray:
     """Upper bound on every future CS bet of each group, whatever the future values.
 
-    lambda_i = min(c, sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i)))) and
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) and
     sigma2_{i-1} i = 1/4 + sum_{j<i} (x_j - mu_j)^2 >= 1/4 + S_tau for i > tau (the sum only
-    grows), log(1 + i) >= log(2 + tau): so lambda_i <= min(c, sqrt(2 log(1/delta0) /
-    ((1/4 + S_tau) log(2 + tau)))) for every i > tau (tau = nhat so far).
+    grows), log(1 + i) >= log(2 + tau): so lambda_i <= sqrt(2 log(1/delta0) /
+    ((1/4 + S_tau) log(2 + tau))) for every i > tau (tau = nhat so far). The bet actually
+    placed at m is min(lambda_i, c/m) (K+) or min(lambda_i, c/(1-m)) (K-).
     """
     gid, t = _layout(side.offsets)
     mu = (0.5 + _segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
     sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
     s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
-    return np.minimum(c, np.sqrt(k))
+    return np.sqrt(k)
 
 
 def _group_means(side: OrderedSide) -> np.ndarray:
@@ -347,8 +460,10 @@ class AdaptiveOutcome:
     nhat: np.ndarray  # (H,) entering twin runs at the stop
     rejected_lo: np.ndarray  # (H,) after the correction (per family = kind)
     rejected_up: np.ndarray
-    twin_hours_adaptive: int
-    twin_hours_fixed: int
+    twin_hours_adaptive: int  # node-runs simulated: X_0 in B_0 of a running hypothesis only
+    twin_hours_fixed: int  # every node for the whole budget (prefix reuse)
+    twin_hours_all_x0: int  # adaptive stopping, but every revealed X_0 simulated per node
+    twin_hours_paper: int  # every sequence from scratch for the whole budget
 
 
 def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -357,6 +472,31 @@ def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarra
     on = paths >= 0
     np.maximum.at(out, paths[on], np.broadcast_to(per_hyp[:, None], paths.shape)[on])
     return out
+
+
+def node_needs(paths: np.ndarray, per_hyp: np.ndarray, in_b0: np.ndarray, n_nodes: int
+               ) -> np.ndarray:
+    """(n_nodes, m) bool: run j of node v is needed iff some hypothesis whose path uses v has
+    j revealed (j < per_hyp[h]) and its real X_0 in B_0 (only those runs can ever enter).
+
+    Skipping the other runs changes no decision: a run whose X_0 is outside B_0 contributes
+    the factor 1 to that hypothesis whatever the twin does. The X_0 order is untouched, so
+    each hypothesis' runs stay a uniformly random order of the X_0 in D.
+    """
+    m = in_b0.shape[1]
+    need = np.zeros((n_nodes, m), dtype=bool)
+    revealed = in_b0 & (np.arange(m)[None, :] < np.asarray(per_hyp)[:, None])
+    for s in range(paths.shape[1]):
+        on = paths[:, s] >= 0
+        np.logical_or.at(need, paths[on, s], revealed[on])
+    return need
+
+
+def paper_hours(hyps: pd.DataFrame, budget: int) -> int:
+    """Twin-hours of the paper's scheme: every action sequence simulated from scratch,
+    t hours per run, ``budget`` runs per distinct sequence (no prefix reuse)."""
+    seqs = {tuple(int(a) for a in seq) for seq in hyps["actions"].tolist()}
+    return int(sum(len(q) for q in seqs) * budget)
 
 
 def embed_runs(runs: TwinRuns, idx: np.ndarray, h: int) -> TwinRuns:
@@ -390,26 +530,39 @@ def adaptive_test(
     budget: int | None = None,
     seed: int = 0,
     c: float = C_TRUNC,
+    holm_aware: bool | None = None,
+    shards: np.ndarray | None = None,
+    curtail: float = 0.0,
 ) -> AdaptiveOutcome:
     """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
 
-    Twin-hours with prefix reuse: node a_1:s costs one hour per run revealed to any
-    hypothesis whose path uses it; the fixed scheme simulates every node for the budget.
+    Twin-hours with prefix reuse: node a_1:s costs one hour per run simulated for it, i.e.
+    per run revealed to a hypothesis whose path uses it and whose B_0 holds that run's X_0
+    (``node_needs``); the fixed scheme simulates every node for the budget.
+    ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
+    Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
+    futile sides per shard as the workflow's parallel shards do (default: whole family).
     """
     m = nodes.x0.shape[0]
     budget = m if budget is None else int(budget)
     if not 0 <= budget <= m:
         raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
     runs = twin_runs_indexed(hyps, nodes, states)
-    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c)
+    if holm_aware is None:
+        holm_aware = correction in HOLM_AWARE
+    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
+                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail)
     run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
-    used = node_runs(hypothesis_paths(hyps, nodes.index), per_hyp, len(nodes.index))
+    paths = hypothesis_paths(hyps, nodes.index)
+    need = node_needs(paths, per_hyp, runs.in_b0, len(nodes.index))
+    used = need.sum(axis=1)
     rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
     return AdaptiveOutcome(
         p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
         int(used.sum()), int(len(nodes.index) * budget),
+        int(node_runs(paths, per_hyp, len(nodes.index)).sum()), paper_hours(hyps, budget),
     )
 
 

@@ -4,10 +4,10 @@ The shard holds the plan's leaves with some first actions (``plan.shards``); its
 are those whose sequence starts with one of them (so no node is shared across shards).
 Batch b (b = 1, 2, ...) is the slice [(b-1) s, b s) of the plan's seeded X_0 permutation
 (s = batch size, capped at the budget). Before batch 1 the observational side alone can
-settle a hypothesis (futility: its bound at alpha is uninformative). At each batch the
-nodes still needed are the paths of the hypotheses that are still running (prefix reuse:
-a node is needed while any hypothesis on its path is undecided); only the leaves of that
-sub-tree are simulated, and their hours fill every node on their path. After the batch,
+settle a hypothesis (futility: its bound at alpha is uninformative). At each batch run j of
+node v is simulated only if some still-running hypothesis whose path uses v has X_0 j in
+its B_0 (``inference.sequential.node_needs``: other runs can never enter it); deepest nodes
+first, each simulation filling every node on its path (prefix reuse). After the batch,
 ``inference.sequential.SequentialState.update`` decides early rejection / futility.
 
 Outputs (every simulated run accounted for): the node rows actually simulated (the fixed
@@ -28,18 +28,19 @@ import pandas as pd
 from twinfalsify.bounds import ObservationalSide, TwinNodes
 from twinfalsify.design import ActionBins, StateBins
 from twinfalsify.inference.sequential import (
+    HOLM_AWARE,
     SequentialState,
     embed_runs,
     family_sizes,
     hypothesis_paths,
-    node_runs,
+    node_needs,
     twin_runs_indexed,
 )
 from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
-DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile"}
+DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile", 3: "curtailed"}
 DECISION_COLUMNS = (
     "hyp_id", "stop_batch", "runs_used", "decision_lo", "decision_up", "p_lo", "p_up",
     "nhat", "n_failed",
@@ -52,11 +53,6 @@ def shard_hypotheses(hyps: pd.DataFrame, plan: TwinPlan, shard: int) -> np.ndarr
         raise ContractError(f"twin shard {shard} does not exist (plan has {len(plan.shards)})")
     firsts = {parse_node(leaf)[0] for leaf in plan.shards[shard]}
     return np.array([int(seq[0]) in firsts for seq in hyps["actions"].tolist()], dtype=bool)
-
-
-def _leaf_cover(needed: set[tuple[int, ...]]) -> list[tuple[int, ...]]:
-    """Needed nodes that are not a proper prefix of another needed node."""
-    return sorted(n for n in needed if not any(o[: len(n)] == n and o != n for o in needed))
 
 
 def _rows(name: str, s: int, vals: np.ndarray, res_status: np.ndarray, msg: np.ndarray,
@@ -86,9 +82,16 @@ def run_adaptive_shard(
     alpha: float = 0.05,
     seed: int = 0,
     budget: int | None = None,
+    correction: str = "holm",
+    curtail: float = 0.0,
     log=sys.stderr,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
-    """Simulate one shard adaptively: (node rows simulated, decisions, summary)."""
+    """Simulate one shard adaptively: (node rows simulated, decisions, summary).
+
+    Holm-aware futility (``correction`` holm or bonferroni) counts the primary-futile sides of
+    this shard's own hypotheses only (shards run in parallel and share nothing): fewer than
+    the whole family's, so a more lenient, still valid, threshold bound.
+    """
     m = len(plan.x0_stay_ids)
     budget = m if budget is None else min(int(budget), m)
     mine = shard_hypotheses(hyps, plan, shard)
@@ -97,7 +100,8 @@ def run_adaptive_shard(
     nodes = TwinNodes(index=index, values=np.full((len(index), m, len(FEATURES)), np.nan),
                       x0=x0[list(FEATURES)].to_numpy(float))
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed,
-                         n_family=family_sizes(hyps), only=mine)
+                         n_family=family_sizes(hyps), only=mine,
+                         holm_aware=correction in HOLM_AWARE, holm_scope=mine, curtail=curtail)
     sub = hyps.iloc[idx]
     seqs = [tuple(int(a) for a in s) for s in sub["actions"].tolist()]
     seeds = plan.run_seeds()
@@ -109,37 +113,52 @@ def run_adaptive_shard(
     def runs_now():
         return embed_runs(twin_runs_indexed(sub, nodes, states), idx, h_total)
 
-    st.update(runs_now(), 0)
+    runs0 = runs_now()
+    in_b0 = runs0.in_b0  # real X_0 in B_0: known before any simulation
+    st.update(runs0, 0)
     sim_node_runs = 0
+    depth_first = sorted({q[:k] for q in seqs for k in range(1, len(q) + 1)}, key=len,
+                         reverse=True)
     for b in range(1, st.n_batches + 1):
         act = st.active[idx]
         if not act.any():
             break
         j0, j1 = st.revealed(b - 1), st.revealed(b)
-        needed = {s[:k] for s, a in zip(seqs, act, strict=True) if a
-                  for k in range(1, len(s) + 1)}
-        done_nodes: set[tuple[int, ...]] = set()
-        for leaf in _leaf_cover(needed):
-            doses = np.broadcast_to(actions.doses(np.asarray(leaf)), (j1 - j0, len(leaf), 2))
-            res = twin.simulate(x0.iloc[j0:j1].reset_index(drop=True), doses.copy(),
-                                seeds[j0:j1])
-            if res.features.shape != (j1 - j0, len(leaf), len(FEATURES)):
+        # runs needed per node this batch: X_0 in B_0 of a running hypothesis using the node
+        need: dict[tuple[int, ...], np.ndarray] = {}
+        for q, a, h in zip(seqs, act, idx, strict=True):
+            if a:
+                for k in range(1, len(q) + 1):
+                    v = need.setdefault(q[:k], np.zeros(j1 - j0, dtype=bool))
+                    v |= in_b0[h, j0:j1]
+        covered = {v: np.zeros(j1 - j0, dtype=bool) for v in need}
+        done_runs = 0
+        for leaf in (v for v in depth_first if v in need):
+            rows = np.flatnonzero(need[leaf] & ~covered[leaf])
+            if rows.size == 0:
+                continue
+            doses = np.broadcast_to(actions.doses(np.asarray(leaf)), (rows.size, len(leaf), 2))
+            res = twin.simulate(x0.iloc[j0 + rows].reset_index(drop=True), doses.copy(),
+                                seeds[j0 + rows])
+            if res.features.shape != (rows.size, len(leaf), len(FEATURES)):
                 raise ContractError(
                     f"twin {twin.name}: simulate returned features of shape "
-                    f"{res.features.shape}, expected {(j1 - j0, len(leaf), len(FEATURES))}")
+                    f"{res.features.shape}, expected {(rows.size, len(leaf), len(FEATURES))}")
             for s in range(1, len(leaf) + 1):
                 node = leaf[:s]
-                if node in done_nodes:
+                new = ~covered[node][rows]  # a prefix may hold some of these rows already
+                if not new.any():
                     continue
-                done_nodes.add(node)
-                vals = res.features[:, s - 1, :]
-                nodes.values[index[node], j0:j1] = vals
-                frames.append(_rows(node_name(node), s, vals, res.status, res.message,
-                                    res.clamped, stays[j0:j1]))
-        sim_node_runs += len(done_nodes) * (j1 - j0)
+                covered[node][rows[new]] = True
+                vals = res.features[new, s - 1, :]
+                nodes.values[index[node], j0 + rows[new]] = vals
+                frames.append(_rows(node_name(node), s, vals, res.status[new], res.message[new],
+                                    np.asarray(res.clamped)[new], stays[j0 + rows[new]]))
+                done_runs += int(new.sum())
+        sim_node_runs += done_runs
         st.update(runs_now(), b)
         running = int(st.active[idx].sum())
-        fixed = len({s[:k] for s in seqs for k in range(1, len(s) + 1)}) * budget
+        fixed = len({q[:k] for q in seqs for k in range(1, len(q) + 1)}) * budget
         print(f"[adaptive {twin.name} shard {shard}] batch {b}/{st.n_batches} (X_0 {j1}/{budget})"
               f": {len(idx) - running} decided, {running} undecided parameter sets; "
               f"node-runs {sim_node_runs:,} of {fixed:,} ({fixed - sim_node_runs:,} saved), "
@@ -158,7 +177,7 @@ def run_adaptive_shard(
     rows = (pd.concat(frames, ignore_index=True) if frames
             else pd.DataFrame(columns=list(NODE_COLUMNS)))
     paths = hypothesis_paths(sub, index)
-    per_node = node_runs(paths, used[idx], len(index))
+    per_node = node_needs(paths, used[idx], in_b0[idx], len(index)).sum(axis=1)
     shard_nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
     summary = {
         "shard": shard, "batch_size": int(batch_size), "budget": budget,
@@ -239,7 +258,7 @@ def adaptive_results(
             "failed_runs": "drop", "y_lo": s.y_lo, "y_up": s.y_up,
             "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
             "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
-            "rejected": rej, "correction": correction, "alpha": alpha,
+            "p_floor": False, "rejected": rej, "correction": correction, "alpha": alpha,
             "stop_batch": dec["stop_batch"].to_numpy(), "runs_used": used,
             "decision": dec[f"decision_{side}"].to_numpy(),
         }))  # fmt: skip

@@ -1,0 +1,81 @@
+"""Betting p-values and the sample order: decisions across seeds, one order vs K orders.
+
+    PYTHONPATH=src python benchmarks/bench_betting_order.py [--config config/config.yaml]
+        [--seeds 5] [--orders 1 16]
+
+Builds the study in-process as ``bench_adaptive.build`` does, simulates every twin run of
+the plan (builtin twins), then runs the betting test (``testing.failed_runs`` of the config,
+Holm per kind) with ``orders`` = K for seeds 0..S-1 of the test (the study itself, hence the
+data, is fixed). Prints per twin and K: Holm rejections per seed (min-max), decisions that
+flip across the seeds (a (hypothesis, side) rejected under some seeds but not others), the
+seed-to-seed p ratio max/min (median and 90th percentile over hypotheses with p < 1 under
+every seed) and the wall time of one test run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_adaptive import build, in_process  # noqa: E402
+
+from twinfalsify import bounds  # noqa: E402
+from twinfalsify.falsify import make_methods, run_tests  # noqa: E402
+from twinfalsify.runs import plan as tp  # noqa: E402
+from twinfalsify.runs.registry import make_twin  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--config", default="config/config.yaml")
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--orders", type=int, nargs="+", default=[1, 16])
+    ap.add_argument("--twins", nargs="+", default=None)
+    args = ap.parse_args()
+    cfg = yaml.safe_load(Path(args.config).read_text())
+    seed = int(cfg["seed"])
+    testing = cfg["testing"]
+    st = build(cfg, seed)
+    print("| twin | K orders | rejections per seed | flipped decisions | p ratio median | "
+          "p ratio 90th | s per run |")
+    print("|---|---|---|---|---|---|---|")
+    for name in args.twins or list(cfg["twins"]):
+        twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
+        runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
+                          for k in range(len(st.plan.shards))], ignore_index=True)
+        nodes = tp.load_nodes(runs, st.plan, st.x0)
+        tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
+        samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
+        for k in args.orders:
+            rej, ps, secs = [], [], []
+            for s in range(args.seeds):
+                t0 = time.monotonic()
+                res = run_tests(st.hyps, samples, nf,
+                                make_methods({"betting": {"orders": k}}, s),
+                                alpha=float(testing.get("alpha", 0.05)),
+                                correction=testing.get("correction", "holm"),
+                                failed_runs=testing.get("failed_runs", "conservative"))
+                secs.append(time.monotonic() - t0)
+                rej.append(res["rejected"].to_numpy())
+                ps.append(res["p_value"].to_numpy())
+            rej, ps = np.array(rej), np.array(ps)
+            flips = int((rej.any(axis=0) & ~rej.all(axis=0)).sum())
+            ok = ps.max(axis=0) < 1
+            ratio = ps[:, ok].max(axis=0) / ps[:, ok].min(axis=0)
+            med, q90 = ((f"{np.median(ratio):.3f}", f"{np.quantile(ratio, 0.9):.3f}")
+                        if ok.any() else ("-", "-"))  # no p < 1 under every seed
+            counts = rej.sum(axis=1)
+            print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {flips} of {rej.shape[1]} | "
+                  f"{med} | {q90} | {np.mean(secs):.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
