@@ -11,7 +11,7 @@ from twinfalsify.design import ActionBins, StateBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
 from twinfalsify.runs.adaptive import run_adaptive_shard  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, x0_frame  # noqa: E402
-from twinfalsify.runs.registry import make_twin  # noqa: E402
+from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
 
 class _Log:
@@ -31,7 +31,9 @@ def main(sm):
         sm.input.hypotheses, sm.input.counts, sm.input.follow
     )
     runs_cfg, testing = json.loads(sm.params.runs), json.loads(sm.params.testing)
-    twin = make_twin(sm.wildcards.twin, json.loads(sm.params.spec), read_json(sm.input.context))
+    spec = json.loads(sm.params.spec)
+    spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
+    twin = make_twin(sm.wildcards.twin, spec, read_json(sm.input.context))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     rows, decisions, summary = run_adaptive_shard(
         twin,

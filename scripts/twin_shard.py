@@ -9,15 +9,13 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 from twinfalsify.design import ActionBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, run_shard, x0_frame  # noqa: E402
-from twinfalsify.runs.registry import EXECUTION_KEYS, make_twin  # noqa: E402
+from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
     spec = json.loads(sm.params.spec)
-    # execution-only keys are kept out of the params (changing them reruns no shard)
-    full = sm.config["twins"][sm.wildcards.twin]
-    spec.update({k: full[k] for k in EXECUTION_KEYS if k in full})
+    spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
     if "workers" in spec:
         # Snakemake gave this job sm.threads cores (fewer than asked when --cores is
         # smaller): never run more twin processes than that.

@@ -218,7 +218,8 @@ def test_tiny_run_adaptive_rows(tiny_run, tiny_cfg):
     # skipping X_0 outside every running B_0 only removes runs; the paper's scheme costs most
     assert (ad["twin_hours_all_x0"] % tiny_cfg.adaptive_batch_size == 0).all()
     assert (ad["twin_hours_adaptive"] <= ad["twin_hours_all_x0"]).all()
-    assert (ad["twin_hours_adaptive"] < ad["twin_hours_all_x0"]).any()
+    # (no strict saving asserted here: a node used by a running Manski hypothesis, B_0 = all,
+    # needs every X_0, which in this tiny run is every node; test_sequential covers skipping)
     assert (ad["twin_hours_paper"] >= ad["twin_hours_fixed"]).all()
     # rejections per replicate and bias agree between the two tables (both kinds)
     per = seq.groupby(["replicate", "bias"])["n_rejected"].sum()

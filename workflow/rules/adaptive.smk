@@ -31,7 +31,7 @@ rule twin_shard_adaptive:
         mem_mb=6000,
         runtime=240,
     params:
-        spec=lambda w: canon(config["twins"][w.twin]),
+        spec=shard_spec,
         runs=canon(config["twin_runs"]),
         testing=canon(config["testing"]),
         seed=config["seed"],

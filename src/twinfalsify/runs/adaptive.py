@@ -36,7 +36,7 @@ from twinfalsify.inference.sequential import (
     node_needs,
     twin_runs_indexed,
 )
-from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node
+from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, plausible
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
@@ -144,15 +144,16 @@ def run_adaptive_shard(
                 raise ContractError(
                     f"twin {twin.name}: simulate returned features of shape "
                     f"{res.features.shape}, expected {(rows.size, len(leaf), len(FEATURES))}")
+            feats, status, message = plausible(res)  # implausible values fail, as in run_shard
             for s in range(1, len(leaf) + 1):
                 node = leaf[:s]
                 new = ~covered[node][rows]  # a prefix may hold some of these rows already
                 if not new.any():
                     continue
                 covered[node][rows[new]] = True
-                vals = res.features[new, s - 1, :]
+                vals = feats[new, s - 1, :]
                 nodes.values[index[node], j0 + rows[new]] = vals
-                frames.append(_rows(node_name(node), s, vals, res.status[new], res.message[new],
+                frames.append(_rows(node_name(node), s, vals, status[new], message[new],
                                     np.asarray(res.clamped)[new], stays[j0 + rows[new]]))
                 done_runs += int(new.sum())
         sim_node_runs += done_runs

@@ -123,7 +123,7 @@ def x0_frame(d: pd.DataFrame, stay_ids: list[int]) -> pd.DataFrame:
     return first.loc[stay_ids, list(FEATURES)].reset_index()
 
 
-def _plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(features, status, message) of a SimResult with every run that returned a value
     outside the trajectory contract's ranges failed as ``implausible``
     (schema.mark_implausible): the one place every stored run of every twin passes."""
@@ -162,7 +162,7 @@ def _simulate_leaves(
             raise ContractError(
                 f"twin {twin.name}: simulate returned features of shape {res.features.shape}"
             )
-        feats, status, message = _plausible(res)
+        feats, status, message = plausible(res)
         out = []
         for j, seq in enumerate(seqs):
             rows = slice(j * m, (j + 1) * m)
@@ -173,7 +173,7 @@ def _simulate_leaves(
     for i, seq in enumerate(seqs, 1):
         doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
         res = twin.simulate(x0, doses, seeds)
-        feats, status, message = _plausible(res)
+        feats, status, message = plausible(res)
         out.append((feats, status, message, res.clamped))
         rate = i * m / max(time.monotonic() - start, 1e-9)
         print(

@@ -28,6 +28,12 @@ EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_ru
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
+def with_execution_keys(spec: dict[str, Any], full: dict[str, Any]) -> dict[str, Any]:
+    """``spec`` (a shard's params, execution-only keys left out so that changing them reruns
+    no shard) completed with the execution-only keys of the config's ``full`` spec."""
+    return {**spec, **{k: full[k] for k in EXECUTION_KEYS if k in full}}
+
+
 def _load_context(context: dict[str, Any] | Path | str | None) -> dict[str, Any]:
     if context is None:
         return {}
