@@ -213,9 +213,11 @@ step_data() {
 }
 
 # ------------------------------------------------------------------------------ smoke
-# Run on every invocation (not stamped). Initialise an engine for one patient (data root = PREFIX/install/bin, run from another
-# directory) and advance 60 s. The stabilised values are compared with the recorded real-engine
-# run of this patient (Pulse 4.2.0 @ 9af9d8f6, pybind11 2.13.6, numpy 2): equal to 6 digits.
+# Runs on every invocation (not stamped). Initialises an engine for one patient (data root =
+# PREFIX/install/bin, run from another directory) and advances 60 s. The stabilised values are
+# compared with the recorded real-engine run of this patient (tests/fixtures/pulse-reference P1,
+# Pulse 4.2.0 @ 9af9d8f6, pybind11 2.13.6, numpy 2): equal to 6 digits there; a difference
+# above 0.1 % fails, a smaller one warns.
 step_smoke() {
     mkdir -p "$PREFIX/smoke"
     (cd "$PREFIX/smoke" && PYTHONPATH="$INSTALL/bin:$INSTALL/python" \
@@ -275,8 +277,9 @@ bad = []
 for k, want in expected.items():
     got = stable[k]
     if f"{got:.6g}" != f"{want:.6g}":
-        (bad if abs(got - want) > 1e-3 * abs(want) else []).append(f"{k} {got:.6g} != {want:.6g}")
         print(f"WARNING: {k} = {got:.6g}, recorded {want:.6g}")
+        if abs(got - want) > 1e-3 * abs(want):
+            bad.append(f"{k} {got:.6g} != {want:.6g}")
 print("recorded values (MAP 95.6575, HR 95, Na 143.651): " + ("MISMATCH " + "; ".join(bad) if bad else "match"))
 t0 = time.time()
 ok = engine.advance_time_s(60)
