@@ -165,3 +165,14 @@ def shard_runtime(wildcards, input, threads):
         hours * SECONDS_PER_TWIN_HOUR[twin_spec(wildcards)["kind"]] / max(threads, 1)
     )
     return max(10, int(2 * seconds / 60) + 1)
+
+
+def mimic3_data():
+    """Resolved MIMIC-III folder + file fingerprint (mimic3 source only): a new folder or
+    a changed file reruns the extraction (twinfalsify.sources.mimic3_rule.data_params).
+    """
+    if config["source"]["kind"] != "mimic3":
+        return ""
+    from twinfalsify.sources.mimic3_rule import data_params
+
+    return data_params(config["source"].get("mimic3"))

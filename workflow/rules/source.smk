@@ -1,14 +1,3 @@
-def mimic3_data():
-    """Resolved MIMIC-III folder + file fingerprint (mimic3 source only): a new folder or
-    a changed file reruns the extraction (twinfalsify.sources.mimic3_rule.data_params).
-    """
-    if config["source"]["kind"] != "mimic3":
-        return ""
-    from twinfalsify.sources.mimic3_rule import data_params
-
-    return data_params(config["source"].get("mimic3"))
-
-
 rule trajectories:
     output:
         f"{R}/trajectories.parquet",
