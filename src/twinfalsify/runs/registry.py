@@ -28,6 +28,12 @@ EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_ru
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
+def _library_pythonpath(rest: str | None) -> str:
+    """PYTHONPATH for a twin subprocess that imports this very library (scripts run it from
+    src/ without installing it): this src/ first, then ``rest``."""
+    return os.pathsep.join(p for p in (str(_SRC), rest) if p)
+
+
 def with_execution_keys(spec: dict[str, Any], full: dict[str, Any]) -> dict[str, Any]:
     """``spec`` (a shard's params, execution-only keys left out so that changing them reruns
     no shard) completed with the execution-only keys of the config's ``full`` spec."""
@@ -153,8 +159,8 @@ def make_twin(
             # PATH says (a twin needing another interpreter, e.g. Pulse's, names its path).
             command = [sys.executable, *command[1:]]
             env = dict(opts["env"] or {})
-            env["PYTHONPATH"] = os.pathsep.join(
-                p for p in (str(_SRC), env.get("PYTHONPATH", os.environ.get("PYTHONPATH"))) if p)
+            env["PYTHONPATH"] = _library_pythonpath(
+                env.get("PYTHONPATH", os.environ.get("PYTHONPATH")))
             opts["env"] = env
         return ProtocolTwin(name, command, **opts)
     raise ContractError(f"twins.{name}: unknown kind {kind!r}; choose one of {', '.join(KINDS)}")
@@ -200,8 +206,6 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
         "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
     ]  # fmt: skip
     opts = _runner_options(spec, 60.0)
-    # The served process must import this very library (scripts run it from src/
-    # without installing it).
-    pythonpath = os.pathsep.join(p for p in (str(_SRC), os.environ.get("PYTHONPATH")) if p)
-    opts["env"] = {"PYTHONPATH": pythonpath, **(opts["env"] or {})}
+    opts["env"] = {"PYTHONPATH": _library_pythonpath(os.environ.get("PYTHONPATH")),
+                   **(opts["env"] or {})}
     return ProtocolTwin(name, command, **opts)
