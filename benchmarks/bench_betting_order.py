@@ -1,11 +1,12 @@
 """Betting p-values and the sample order: decisions across seeds, one order vs K orders.
 
     PYTHONPATH=src python benchmarks/bench_betting_order.py [--config config/config.yaml]
-        [--seeds 5] [--orders 1 16]
+        [--seeds 5] [--bets mixture plugin:1 plugin:16]
 
 Builds the study in-process as ``bench_adaptive.build`` does, simulates every twin run of
 the plan (builtin twins), then runs the betting test (``testing.failed_runs`` of the config,
-Holm per kind) with ``orders`` = K for seeds 0..S-1 of the test (the study itself, hence the
+Holm per kind) with each bets variant (``mixture``: the order-free grid mixture, the default;
+``plugin:K``: plug-in bets averaged over K seeded orders) for seeds 0..S-1 of the test (the study itself, hence the
 data, is fixed). Prints per twin and K: Holm rejections per seed (min-max), decisions that
 flip across the seeds (a (hypothesis, side) rejected under some seeds but not others), the
 seed-to-seed p ratio max/min (median and 90th percentile over hypotheses with p < 1 under
@@ -37,14 +38,14 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--orders", type=int, nargs="+", default=[1, 16])
+    ap.add_argument("--bets", nargs="+", default=["mixture", "plugin:1", "plugin:16"])
     ap.add_argument("--twins", nargs="+", default=None)
     args = ap.parse_args()
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
     testing = cfg["testing"]
     st = build(cfg, seed)
-    print("| twin | K orders | rejections per seed | flipped decisions | p ratio median | "
+    print("| twin | bets | rejections per seed | flipped decisions | p ratio median | "
           "p ratio 90th | s per run |")
     print("|---|---|---|---|---|---|---|")
     for name in args.twins or list(cfg["twins"]):
@@ -54,12 +55,14 @@ def main() -> None:
         nodes = tp.load_nodes(runs, st.plan, st.x0)
         tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
         samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
-        for k in args.orders:
+        for k in args.bets:
+            kind, _, orders = k.partition(":")
+            opts = {"bets": kind, **({"orders": int(orders)} if orders else {})}
             rej, ps, secs = [], [], []
             for s in range(args.seeds):
                 t0 = time.monotonic()
                 res = run_tests(st.hyps, samples, nf,
-                                make_methods({"betting": {"orders": k}}, s),
+                                make_methods({"betting": opts}, s),
                                 alpha=float(testing.get("alpha", 0.05)),
                                 correction=testing.get("correction", "holm"),
                                 failed_runs=testing.get("failed_runs", "conservative"))

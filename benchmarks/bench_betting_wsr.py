@@ -123,7 +123,7 @@ def _samples(xs: list[np.ndarray]) -> HypothesisSamples:
 
 
 def project_ci(xs: list[np.ndarray], alpha: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    b = betting_bounds(_samples(xs), alpha, tune_alpha=alpha, seed=seed)
+    b = betting_bounds(_samples(xs), alpha, tune_alpha=alpha, bets="plugin", seed=seed)
     return b["lower_twin"], b["upper_twin"]
 
 

@@ -172,9 +172,11 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     assert list(twin.group(0)) == [5.0] and list(twin.group(1)) == [5.0]
 
 
-def test_betting_worst_case_uses_one_order_and_the_family_tuning():
-    """Every completion k is evaluated with the hypothesis' own orders and the tuning of the
-    whole family: equal to evaluating the completions on the full set of hypotheses."""
+@pytest.mark.parametrize("bets", [{"bets": "plugin", "seed": 3, "orders": 4}, {}])
+def test_betting_worst_case_uses_one_order_and_the_family_tuning(bets):
+    """Every completion k is evaluated with the hypothesis' own orders (plug-in bets; the
+    default mixture has none) and the tuning of the whole family: equal to evaluating the
+    completions on the full set of hypotheses."""
     from functools import partial
 
     from twinfalsify.inference.betting import betting_test, default_tune_alpha
@@ -186,9 +188,9 @@ def test_betting_worst_case_uses_one_order_and_the_family_tuning():
     s = s.take(np.flatnonzero((s.n > 0) & (s.nhat > 0)))
     h = len(s)
     f = np.where(np.arange(h) % 2 == 0, 0, rng.integers(1, 8, h))
-    method = partial(betting_test, seed=3, orders=4)
+    method = partial(betting_test, **bets)
     got_lo, got_up = conservative_pvalues(method, s, f)
-    full = partial(betting_test, seed=3, orders=4, tune_alpha=default_tune_alpha(h))
+    full = partial(betting_test, **bets, tune_alpha=default_tune_alpha(h))
     ref_lo, ref_up = full(s)
     _, _, k_lo, k_up = hoeffding_worst_k(s, f)
     for k in (f, k_lo):

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from twinfalsify.inference.betting import (
+    MIX_GRID,
+    MIX_RATIO,
     betting_bounds,
     betting_test,
     ordered_sides,
@@ -93,15 +95,16 @@ def test_bounds_monotone_in_alpha():
         prev = b
 
 
-@pytest.mark.parametrize("orders", [1, 8])
-def test_p_value_is_smallest_rejecting_alpha(orders):
+@pytest.mark.parametrize("bets", [{"bets": "plugin", "orders": 1},
+                                  {"bets": "plugin", "orders": 8}, {"bets": "mixture"}])
+def test_p_value_is_smallest_rejecting_alpha(bets):
     """Closed-form crossing p == bisection on alpha of the interval rule on the bounds."""
-    s = _small_case()
-    p_lo, p_up = betting_test(s, tune_alpha=0.01, orders=orders)
+    s = _small_case(h=12)
+    p_lo, p_up = betting_test(s, tune_alpha=0.01, **bets)
 
     def rule(side):
         def reject(alpha):
-            b = betting_bounds(s, alpha, tune_alpha=0.01, orders=orders)
+            b = betting_bounds(s, alpha, tune_alpha=0.01, **bets)
             if side == "lo":
                 return union_reject(b["upper_twin"], b["lower_lo"])
             return union_reject(b["upper_up"], b["lower_twin"])
@@ -109,7 +112,7 @@ def test_p_value_is_smallest_rejecting_alpha(orders):
 
     ref_lo = smallest_rejecting_alpha(rule("lo"), len(s), rtol=1e-4)
     ref_up = smallest_rejecting_alpha(rule("up"), len(s), rtol=1e-4)
-    assert (p_lo < 0.6).sum() >= 2  # the case exercises rejections
+    assert (p_lo < 0.6).sum() + (p_up < 0.6).sum() >= 2  # the case exercises rejections
     np.testing.assert_allclose(p_lo, ref_lo, rtol=3e-3)
     np.testing.assert_allclose(p_up, ref_up, rtol=3e-3)
 
@@ -150,7 +153,7 @@ def _reference_p(x_large, x_small, delta0, c):
 def test_vectorised_matches_per_hypothesis_reference():
     s = _small_case(seed=9, h=10)
     alpha0, c = 0.01, 0.9
-    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, orders=1)
+    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, bets="plugin", orders=1)
     lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c)
     for h in range(len(s)):
         xl = lo.x[lo.offsets[h]: lo.offsets[h + 1]]
@@ -166,8 +169,8 @@ def test_vectorised_matches_per_hypothesis_reference():
 
 def test_seeded_and_refusals():
     s = _small_case()
-    a = betting_test(s, seed=4)
-    b = betting_test(s, seed=4)
+    a = betting_test(s, bets="plugin", seed=4)
+    b = betting_test(s, bets="plugin", seed=4)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
     # n = 0 and nhat = 0 refuse (p = 1) without disturbing the others
@@ -237,7 +240,7 @@ def test_order_average_matches_per_hypothesis_reference():
     """K orders: the p-value is 2 / crossing of the averaged terminal capitals (brute force)."""
     s = _small_case(seed=9, h=6)
     alpha0, c, k = 0.01, 0.9, 4
-    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, orders=k)
+    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, bets="plugin", orders=k)
     lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c, orders=k)
     g = len(s)
 
@@ -260,7 +263,7 @@ def test_order_averaged_p_values_valid_at_the_null_boundary(orders):
     rng = np.random.default_rng(15)
     reps, n = 2000, 60
     s = _replicates(rng, reps, n, 1.0, lambda k: rng.beta(2, 5, k), lambda k: rng.beta(2, 5, k))
-    p_lo, p_up = betting_test(s, tune_alpha=0.2, orders=orders)
+    p_lo, p_up = betting_test(s, tune_alpha=0.2, bets="plugin", orders=orders)
     for a in (0.05, 0.2, 0.5):
         se = 3 * np.sqrt(a * (1 - a) / reps)
         assert np.mean(p_lo <= a) <= a + se
@@ -271,15 +274,16 @@ def test_order_depends_on_the_hypothesis_only():
     """A hypothesis keeps its p-value when tested alone, with others, or among failed-run
     completions (one order per hypothesis key)."""
     s = _small_case(seed=4, h=8)
-    p_all = betting_test(s, tune_alpha=0.01, orders=4)
+    p_all = betting_test(s, tune_alpha=0.01, bets="plugin", orders=4)
     idx = np.array([1, 5, 6])
-    p_sub = betting_test(s.take(idx), tune_alpha=0.01, orders=4)
+    p_sub = betting_test(s.take(idx), tune_alpha=0.01, bets="plugin", orders=4)
     np.testing.assert_allclose(p_sub[0], p_all[0][idx], rtol=2e-3)
     np.testing.assert_allclose(p_sub[1], p_all[1][idx], rtol=2e-3)
     # without keys the subset's hypotheses would be renumbered and get other orders
     bare = HypothesisSamples(s.y_lo[idx], s.y_up[idx], s.n[idx], s.follow.take(idx),
                              s.twin.take(idx))
-    assert not np.allclose(betting_test(bare, tune_alpha=0.01, orders=4)[0], p_sub[0])
+    p_bare = betting_test(bare, tune_alpha=0.01, bets="plugin", orders=4)[0]
+    assert not np.allclose(p_bare, p_sub[0])
 
 
 def test_averaging_orders_shrinks_the_seed_spread():
@@ -288,7 +292,7 @@ def test_averaging_orders_shrinks_the_seed_spread():
     h = 60
     s = _replicates(rng, h, 200, 0.8, lambda k: rng.beta(2, 2, k),
                     lambda k: np.clip(rng.beta(2, 2, k) - 0.2, 0, 1))
-    p1, p16 = (np.array([betting_test(s, tune_alpha=1e-3, orders=k, seed=sd)[0]
+    p1, p16 = (np.array([betting_test(s, tune_alpha=1e-3, bets="plugin", orders=k, seed=sd)[0]
                          for sd in range(5)]) for k in (1, 16))
     ok = (p1.max(axis=0) < 0.5) & (p16.max(axis=0) < 0.5)
     assert ok.sum() >= 20
@@ -298,3 +302,90 @@ def test_averaging_orders_shrinks_the_seed_spread():
 
     one, many = spread(p1), spread(p16)
     assert many < 0.5 * one, (one, many)
+
+
+# --- order-free grid mixture (the default bets; issue 17) ---------------------------------
+
+
+def _mixture_reference_p(x_large, x_small, delta0, c, grid=MIX_GRID, ratio=MIX_RATIO):
+    """Per-hypothesis reference: explicit mixture of J constant bets, bisection on m."""
+
+    def logk(x, m, sign):
+        lam_min = np.sqrt(8 * np.log(1 / delta0) / len(x))
+        cap = c / m if sign > 0 else c / (1 - m)
+        caps = [np.sum(np.log1p(sign * min(lam_min * ratio**j, cap) * (x - m)))
+                for j in range(grid)]
+        return np.log(np.mean(np.exp(caps)))
+
+    a, b = 0.0, 1.0
+    for _ in range(60):
+        m = 0.5 * (a + b)
+        if logk(x_large, m, +1) >= logk(x_small, m, -1):
+            a = m
+        else:
+            b = m
+    k = max(min(logk(x_large, b, +1), logk(x_small, b, -1)), 0.0)
+    return min(1.0, 2 * np.exp(-k))
+
+
+def test_mixture_matches_per_hypothesis_reference():
+    s = _small_case(seed=9, h=10)
+    alpha0, c = 0.01, 0.9
+    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6)
+    for h in range(len(s)):
+        xl, xu = s.obs_side("lo").group(h), s.obs_side("up").group(h)
+        xt = s.twin_f.group(h)
+        assert p_lo[h] == pytest.approx(_mixture_reference_p(xl, xt, alpha0 / 2, c), rel=1e-4)
+        assert p_up[h] == pytest.approx(_mixture_reference_p(xt, xu, alpha0 / 2, c), rel=1e-4)
+    assert (p_lo < 0.5).sum() >= 2 and (p_up < 0.5).sum() >= 1  # rejections exercised
+
+
+def test_mixture_p_values_are_order_free_and_seed_free():
+    """The mixture's p is a symmetric function of each sample: any permutation of the
+    followers or of the twin runs, and any seed, give the identical p-value (0 flips)."""
+    s = _small_case(seed=12, h=12)
+    base = betting_test(s, tune_alpha=1e-3)
+    rng = np.random.default_rng(0)
+    perm = HypothesisSamples(
+        s.y_lo, s.y_up, s.n,
+        Ragged.from_groups([rng.permutation(s.follow.group(h)) for h in range(len(s))]),
+        Ragged.from_groups([rng.permutation(s.twin.group(h)) for h in range(len(s))]))
+    for sd in range(5):
+        other = betting_test(perm, tune_alpha=1e-3, seed=sd)
+        np.testing.assert_allclose(other[0], base[0], rtol=1e-9)
+        np.testing.assert_allclose(other[1], base[1], rtol=1e-9)
+    # the plug-in bets, by contrast, do see the order
+    p1 = [betting_test(s, tune_alpha=1e-3, bets="plugin", orders=1, seed=sd)[0]
+          for sd in range(3)]
+    assert not np.allclose(p1[0], p1[1])
+
+
+@pytest.mark.parametrize("n", [30, 300])
+def test_mixture_p_values_valid_at_the_null_boundary(n):
+    """Type-I error by simulation: Q_twin = Q_lo, P(p <= a) <= a (Markov on the mixture)."""
+    rng = np.random.default_rng(16 + n)
+    reps = 2000
+    s = _replicates(rng, reps, n, 1.0, lambda k: rng.beta(2, 5, k), lambda k: rng.beta(2, 5, k))
+    p_lo, p_up = betting_test(s, tune_alpha=0.2)
+    for a in (0.05, 0.2, 0.5):
+        se = 3 * np.sqrt(a * (1 - a) / reps)
+        assert np.mean(p_lo <= a) <= a + se
+        assert np.mean(p_up <= a) <= a + se
+
+
+@pytest.mark.parametrize("opts, match", [
+    ({"bets": "kelly"}, "bets must be one of"),
+    ({"orders": 4}, "apply to bets: plugin"),
+    ({"running_max": True}, "apply to bets: plugin"),
+    ({"grid": 0}, "grid must be >= 1"),
+    ({"grid_ratio": 1.0}, "grid_ratio > 1"),
+    ({"bets": "plugin", "orders": 4, "running_max": True}, "running_max needs orders = 1"),
+])
+def test_bad_betting_options_are_config_errors(opts, match):
+    from twinfalsify.inference.registry import make
+    from twinfalsify.schema import ContractError
+
+    with pytest.raises(ValueError, match=match):
+        betting_test(_small_case(h=2), **opts)
+    with pytest.raises(ContractError, match="testing.methods.betting: .*" + match):
+        make("betting", opts, seed=0)

@@ -39,10 +39,28 @@ Validity: under H_lo (Q_twin >= Q_lo) any such m is either >= Q_lo (then
 K+_lo(Q_lo) >= 2/alpha, probability <= alpha/2) or < Q_twin (then K-_twin(Q_twin) >=
 2/alpha, probability <= alpha/2).
 
-Order. The bound depends on the order of the sample. The compact observational
-sample lists followers first; the order used is a uniformly random permutation
+Order ("plugin" bets). The bound depends on the order of the sample. The compact
+observational sample lists followers first; the order used is a uniformly random permutation
 (seeded; independent of the data), drawn for the observational sample (shared by
-Y_lo and Y_up) and for the twin sample. Same seed, same p-values.
+Y_lo and Y_up) and for the twin sample. Same seed, same p-values. ``orders`` K > 1 averages
+the terminal capital over K such orders (an average of e-values is an e-value, Markov).
+
+Order-free mixture ("mixture" bets, the default; issue 17). Replace the predictable bet by a
+uniform mixture over a fixed grid of J constant bets,
+
+    E+(m) = (1/J) sum_j prod_{i<=n} (1 + min(lambda_j, c/m) (x_i - m)),   E- mirrored,
+    lambda_j = lambda_min r^j (j = 0..J-1),  lambda_min = sqrt(8 log(1/delta0) / n),
+
+lambda_min being the fixed-n plug-in bet at the largest variance 1/4 (a smaller bet is never
+needed to reach 1/delta0 at a mean gap that bet can detect) and r^(J-1) spanning variances down
+to 1/(4 r^(2(J-1))). The bets depend on n, m and delta0 only, never on the values, so each
+product is a product of independent factors with mean <= 1 under mean <= m (K+): E[E+(m)] <= 1,
+and Markov gives P(E+(m) >= 1/delta) <= delta. A product does not depend on the order of
+its factors: the p-value is a symmetric function of each sample, so no seed enters and no
+decision can flip with one. Each factor is monotone in m as above, so E+ is non-increasing
+(E- non-decreasing) and the crossing and union arguments below hold with E in place of
+max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
+discretisation of the best bet by at most a factor sqrt(r); measured in docs/statistics.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
 Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are
@@ -63,6 +81,9 @@ import numpy as np
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
+BETS = ("mixture", "plugin")  # order-free grid mixture (default) | WSR predictable plug-in
+MIX_GRID = 6  # J constant bets in the mixture (power measured against J, docs/statistics.md)
+MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
 
 
 @dataclass
@@ -156,14 +177,14 @@ def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool =
                 c: float = C_TRUNC) -> np.ndarray:
     """log max_{0<=t<=n} K^{sign}_t(m) per group (sign +1: K+, -1: K-); m has shape (G,).
 
-    ``running_max=False``: log K_n (terminal). A side with K copies gives
-    log((1/K) sum_k K^(k)_n(m)), terminal only (the running maximum of an average over
-    different orders is not covered by Ville's inequality). Evaluated chunk by chunk of
+    ``running_max=False``: log K_n (terminal). A side with K copies (orders, or the bets of
+    the grid mixture) gives log((1/K) sum_k K^(k)_n(m)), always terminal whatever
+    ``running_max`` says (the running maximum of an average over different orders is not
+    covered by Ville's inequality; the mixture is defined by its terminal value), so a
+    mixture side can be paired with a running-maximum side. Evaluated chunk by chunk of
     groups (cache-sized working arrays).
     """
     if side.copies > 1:
-        if running_max:
-            raise ValueError("log_capital: several orders need the terminal capital")
         one = OrderedSide(side.x, side.lam, side.offsets)
         per = log_capital(one, np.tile(np.asarray(m, float), side.copies), sign, False, c)
         per = per.reshape(side.copies, -1)
@@ -315,6 +336,53 @@ def ordered_sides(
             OrderedSide(tw.x, tw.lam, tw.offsets, k))
 
 
+def _grid_side(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, grid: int,
+               ratio: float) -> OrderedSide:
+    """J = ``grid`` copies of the groups' values, copy j betting lambda_min r^j throughout."""
+    sizes = np.diff(offsets)
+    with np.errstate(divide="ignore"):
+        lam_min = np.sqrt(8.0 * np.log(1.0 / delta0) / sizes)  # inf for an empty group: unused
+    gid = np.repeat(np.arange(len(sizes)), sizes)
+    lam = np.concatenate([lam_min[gid] * ratio ** j for j in range(grid)])
+    offs = np.concatenate([[0], np.cumsum(np.tile(sizes, grid))]).astype(np.int64)
+    return OrderedSide(np.tile(x, grid), lam, offs, grid)
+
+
+def mixture_sides(
+    samples: HypothesisSamples, delta0: np.ndarray | float, grid: int = MIX_GRID,
+    ratio: float = MIX_RATIO,
+) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
+    """(Y_lo, Y_up, twin) rescaled to [0, 1] with the constant bets of the grid mixture.
+
+    Order-free (module doc, "Order-free mixture"): the values stay in their listing order,
+    which the terminal capital of a constant bet does not see. ``grid`` J copies per side.
+    """
+    if int(grid) < 1 or not ratio > 1:
+        raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, {ratio}")
+    h = len(samples)
+    width = samples.width
+    if np.any(~(width > 0)):
+        bad = np.flatnonzero(~(width > 0))[:5]
+        raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
+    d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
+    n = samples.n.astype(np.int64)
+    nf = samples.n_follow
+    offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+    gid, t = _layout(offs)
+    is_f = t <= nf[gid]
+    fg = np.repeat(np.arange(h), nf)
+    xf = np.zeros(len(gid))
+    xf[is_f] = (np.clip(samples.follow.values, samples.y_lo[fg], samples.y_up[fg])
+                - samples.y_lo[fg]) / width[fg]
+    x_lo, x_up = np.where(is_f, xf, 0.0), np.where(is_f, xf, 1.0)
+    tw = samples.twin
+    tg = tw.group_ids()
+    x_tw = (np.clip(tw.values, samples.y_lo[tg], samples.y_up[tg]) - samples.y_lo[tg]) / width[tg]
+    j, r = int(grid), float(ratio)
+    return (_grid_side(x_lo, offs, d0, j, r), _grid_side(x_up, offs, d0, j, r),
+            _grid_side(x_tw, tw.offsets, d0, j, r))
+
+
 def _crossing(
     dec: OrderedSide, inc: OrderedSide, m0: np.ndarray, running_max: bool, c: float,
     tol: float, max_iter: int,
@@ -402,27 +470,64 @@ def default_tune_alpha(h: int) -> float:
     return 0.05 / (2 * max(int(h), 1))
 
 
-ORDERS = 16  # default K for betting_test: seed-to-seed spread measured in docs/statistics.md
-_CHUNK_ELEMENTS = 1 << 23  # K (n + nhat) summed per chunk of hypotheses: bounds memory
+ORDERS = 16  # default K for plugin bets: seed-to-seed spread measured in docs/statistics.md
+_CHUNK_ELEMENTS = 1 << 23  # copies (n + nhat) summed per chunk of hypotheses: bounds memory
 
 
-def _running_max(running_max: bool | None, orders: int) -> bool:
-    if orders < 1:
-        raise ValueError(f"betting: orders must be >= 1, got {orders}")
-    if running_max is None:
-        return orders == 1
-    if running_max and orders > 1:
+@dataclass(frozen=True)
+class Bets:
+    """How the capital is built: validated options of :func:`betting_test`."""
+
+    kind: str = "mixture"
+    orders: int = 1  # plugin: K seeded orders averaged
+    running_max: bool = False  # plugin with one order: max_t K_t (Ville) instead of K_n
+    grid: int = MIX_GRID  # mixture: J constant bets
+    ratio: float = MIX_RATIO
+
+    @property
+    def copies(self) -> int:
+        return self.grid if self.kind == "mixture" else self.orders
+
+    def sides(self, samples: HypothesisSamples, delta0: float | np.ndarray, seed: int,
+              c: float) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
+        if self.kind == "mixture":
+            return mixture_sides(samples, delta0, self.grid, self.ratio)
+        return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders)
+
+
+def make_bets(bets: str = "mixture", orders: int | None = None,
+              running_max: bool | None = None, grid: int = MIX_GRID,
+              grid_ratio: float = MIX_RATIO, default_orders: int = ORDERS) -> Bets:
+    """Check the betting options together; one clear error for a combination that cannot be."""
+    if bets not in BETS:
+        raise ValueError(f"betting: bets must be one of {', '.join(BETS)}, got {bets!r}")
+    if bets == "mixture":
+        if orders is not None or running_max:
+            raise ValueError("betting: orders and running_max apply to bets: plugin (the "
+                             "mixture is order-free and uses the terminal capital)")
+        if int(grid) < 1 or not float(grid_ratio) > 1:
+            raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, "
+                             f"{grid_ratio}")
+        return Bets("mixture", grid=int(grid), ratio=float(grid_ratio))
+    k = default_orders if orders is None else int(orders)
+    if k < 1:
+        raise ValueError(f"betting: orders must be >= 1, got {k}")
+    if running_max and k > 1:
         raise ValueError("betting: running_max needs orders = 1 (averaging over orders uses "
                          "the terminal capital)")
-    return bool(running_max)
+    return Bets("plugin", orders=k, running_max=(k == 1) if running_max is None
+                else bool(running_max))
 
 
 def betting_test(
     samples: HypothesisSamples,
     *,
     tune_alpha: float | None = None,
+    bets: str = "mixture",
+    grid: int = MIX_GRID,
+    grid_ratio: float = MIX_RATIO,
     seed: int = 0,
-    orders: int = ORDERS,
+    orders: int | None = None,
     running_max: bool | None = None,
     c: float = C_TRUNC,
     tol: float = 1e-3,
@@ -430,15 +535,17 @@ def betting_test(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
 
-    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``orders``: K
-    seeded sample orders whose terminal capitals are averaged (K = 1: one order, running
-    maximum by default); ``tol``: accuracy of log K* (p's relative accuracy), p is never
-    understated. Hypotheses are processed in chunks (memory); a hypothesis' orders depend
-    on its key only, so chunking does not change any p-value.
+    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``bets``:
+    "mixture" (default: order-free grid mixture of ``grid`` constant bets spaced by
+    ``grid_ratio``; ``seed`` is not used) or "plugin" (WSR's predictable plug-in bets over
+    ``orders`` K seeded sample orders whose terminal capitals are averaged, default 16; K = 1:
+    one order, running maximum by default); ``tol``: accuracy of log K* (p's relative
+    accuracy), p is never understated. Hypotheses are processed in chunks (memory); a
+    hypothesis' orders depend on its key only, so chunking does not change any p-value.
     """
+    how = make_bets(bets, orders, running_max, grid, grid_ratio)
     h = len(samples)
     p_lo, p_up = np.ones(h), np.ones(h)
-    rmax = _running_max(running_max, int(orders))
     ok = (samples.n > 0) & (samples.nhat > 0)
     if not ok.any():
         return p_lo, p_up
@@ -446,14 +553,15 @@ def betting_test(
     if not 0 < alpha0 < 1:
         raise ValueError(f"betting: tune_alpha must be in (0, 1), got {alpha0}")
     sub = samples if ok.all() else _subset(samples, ok)
-    size = int(orders) * (sub.n + sub.nhat)
+    size = how.copies * (sub.n + sub.nhat)
     cum = np.cumsum(size)
     cuts = np.unique(np.searchsorted(cum, np.arange(_CHUNK_ELEMENTS, cum[-1], _CHUNK_ELEMENTS)))
     cuts = cuts[(cuts > 0) & (cuts < len(sub))]
     k_lo, k_up = np.zeros(len(sub)), np.zeros(len(sub))
+    rmax = how.running_max
     for idx in np.split(np.arange(len(sub)), cuts):
         part = sub if len(idx) == len(sub) else sub.take(idx)
-        lo, up, tw = ordered_sides(part, alpha0 / 2, seed=seed, c=c, orders=int(orders))
+        lo, up, tw = how.sides(part, alpha0 / 2, seed, c)
         r = part.width
         q_lo = (part.q_lo_hat - part.y_lo) / r
         q_up = (part.q_up_hat - part.y_lo) / r
@@ -484,23 +592,25 @@ def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: boo
 
 def betting_bounds(
     samples: HypothesisSamples, alpha: float | np.ndarray, *, tune_alpha: float | None = None,
-    seed: int = 0, orders: int = 1, running_max: bool | None = None, c: float = C_TRUNC,
+    bets: str = "mixture", grid: int = MIX_GRID, grid_ratio: float = MIX_RATIO, seed: int = 0,
+    orders: int | None = None, running_max: bool | None = None, c: float = C_TRUNC,
 ) -> dict[str, np.ndarray]:
     """One-sided (1 - alpha/2) bounds in outcome units, for the union rule at level alpha.
 
     ``alpha``: a scalar or one level per hypothesis.
-    Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same orders and
-    bets as :func:`betting_test` with the same seed and ``orders`` (default here: one order,
-    running maximum, the WSR interval), so the rule on these bounds rejects at alpha
+    Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same bets as
+    :func:`betting_test` with the same options (``bets: plugin`` defaults here to one order
+    with the running maximum, WSR's interval), so the rule on these bounds rejects at alpha
     exactly when that p-value is <= alpha (up to the bisection's resolution).
     Requires n > 0 and nhat > 0 for every hypothesis.
     """
     if np.any(samples.n == 0) or np.any(samples.nhat == 0):
         raise ValueError("betting_bounds: every hypothesis needs n > 0 and nhat > 0")
     h = len(samples)
-    rmax = _running_max(running_max, int(orders))
+    how = make_bets(bets, orders, running_max, grid, grid_ratio, default_orders=1)
+    rmax = how.running_max
     alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
-    lo, up, tw = ordered_sides(samples, alpha0 / 2, seed=seed, c=c, orders=int(orders))
+    lo, up, tw = how.sides(samples, alpha0 / 2, seed, c)
     alpha = np.broadcast_to(np.asarray(alpha, float), (h,))
     if np.any(~((alpha > 0) & (alpha <= 1))):
         raise ValueError("betting_bounds: alpha must be in (0, 1]")

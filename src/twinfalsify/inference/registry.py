@@ -23,7 +23,8 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     ),
     "betting": (
         "twinfalsify.inference.betting:betting_test",
-        ("tune_alpha", "orders", "running_max", "c", "tol", "max_iter"),
+        ("tune_alpha", "bets", "grid", "grid_ratio", "orders", "running_max", "c", "tol",
+         "max_iter"),
         True,
     ),
     "bernstein": ("twinfalsify.inference.bernstein:bernstein_test", (), False),
@@ -44,6 +45,14 @@ def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
             f"testing.methods.{name}: unknown option(s) {sorted(unknown)}; "
             f"allowed: {', '.join(allowed) or 'none'}"
         )
+    if name == "betting":  # option values that only make sense together: checked now
+        from twinfalsify.inference.betting import make_bets
+
+        keys = ("bets", "orders", "running_max", "grid", "grid_ratio")
+        try:
+            make_bets(**{k: opts[k] for k in keys if k in opts})
+        except (TypeError, ValueError) as e:
+            raise ContractError(f"testing.methods.betting: {e}") from None
     module, func = target.split(":")
     fn = getattr(__import__(module, fromlist=[func]), func)
     if seeded:
