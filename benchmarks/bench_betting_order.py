@@ -6,11 +6,11 @@
 Builds the study in-process as ``bench_adaptive.build`` does, simulates every twin run of
 the plan (builtin twins), then runs the betting test (``testing.failed_runs`` of the config,
 Holm per kind) with each bets variant (``mixture``: the order-free grid mixture, the default;
-``plugin:K``: plug-in bets averaged over K seeded orders) for seeds 0..S-1 of the test (the study itself, hence the
-data, is fixed). Prints per twin and K: Holm rejections per seed (min-max), decisions that
-flip across the seeds (a (hypothesis, side) rejected under some seeds but not others), the
-seed-to-seed p ratio max/min (median and 90th percentile over hypotheses with p < 1 under
-every seed) and the wall time of one test run.
+``plugin:K``: plug-in bets averaged over K seeded orders) for seeds 0..S-1 of the test (the
+study itself, hence the data, is fixed). Prints per twin and variant: Holm rejections per
+seed (min-max), decisions that flip across the seeds (a (hypothesis, side) rejected under
+some seeds but not others), the seed-to-seed p ratio max/min (median and 90th percentile
+over hypotheses with p < 1 under every seed) and the wall time of one test run.
 """
 
 from __future__ import annotations

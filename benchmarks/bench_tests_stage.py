@@ -50,7 +50,8 @@ def make_samples(h: int, seed: int = 0) -> HypothesisSamples:
 METHODS = {
     "hoeffding": hoeffding_test,
     "bootstrap": lambda s: bootstrap_test(s, n_resamples=100, seed=0),
-    "betting": lambda s: betting_test(s, bets="plugin", seed=0, orders=1),  # one order, as the baseline
+    # one order of the plug-in bets, as the baseline
+    "betting": lambda s: betting_test(s, bets="plugin", seed=0, orders=1),
     "bernstein": bernstein_test,
 }
 

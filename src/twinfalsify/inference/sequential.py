@@ -20,9 +20,10 @@ P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence
 stopping time, however data-dependent.
 
 Observational side: the fixed-sample betting bound with the order-free grid mixture
-(``betting.mixture_sides``, as the fixed scheme's default test; terminal capital, Markov). Union rule: reject H_lo at level a when some m has
-max_t K+_lo(m) >= 2/a and max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the
-crossing of the two curves (``betting._crossing``), evaluated with the twin data revealed
+(``betting.mixture_sides``, as the fixed scheme's default test; terminal capital, Markov).
+Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
+max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
+(``betting._crossing``), evaluated with the twin data revealed
 at the stopping time tau. Mirror for H_up.
 
 Decisions after each batch (one-sided hypotheses; the family is the hypothesis kind, as in
