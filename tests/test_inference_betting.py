@@ -225,14 +225,21 @@ def _avg_reference_p(sides_large, sides_small, delta0, c):
             vals.append(np.sum(np.log1p(sign * np.minimum(lam, cap) * (x - m))))
         return np.log(np.mean(np.exp(vals)))
 
+    return _bisected_p(lambda m: logk(sides_large, m, +1), lambda m: logk(sides_small, m, -1),
+                       50)
+
+
+def _bisected_p(g_dec, g_inc, n_iter):
+    """p = min(1, 2 / K*), K* = the crossing of a non-increasing and a non-decreasing log
+    capital in m, by plain bisection (a reference for the vectorised search)."""
     a, b = 0.0, 1.0
-    for _ in range(50):
+    for _ in range(n_iter):
         m = 0.5 * (a + b)
-        if logk(sides_large, m, +1) >= logk(sides_small, m, -1):
+        if g_dec(m) >= g_inc(m):
             a = m
         else:
             b = m
-    k = max(min(logk(sides_large, b, +1), logk(sides_small, b, -1)), 0.0)
+    k = max(min(g_dec(b), g_inc(b)), 0.0)
     return min(1.0, 2 * np.exp(-k))
 
 
@@ -317,15 +324,7 @@ def _mixture_reference_p(x_large, x_small, delta0, c, grid=MIX_GRID, ratio=MIX_R
                 for j in range(grid)]
         return np.log(np.mean(np.exp(caps)))
 
-    a, b = 0.0, 1.0
-    for _ in range(60):
-        m = 0.5 * (a + b)
-        if logk(x_large, m, +1) >= logk(x_small, m, -1):
-            a = m
-        else:
-            b = m
-    k = max(min(logk(x_large, b, +1), logk(x_small, b, -1)), 0.0)
-    return min(1.0, 2 * np.exp(-k))
+    return _bisected_p(lambda m: logk(x_large, m, +1), lambda m: logk(x_small, m, -1), 60)
 
 
 def test_mixture_matches_per_hypothesis_reference():

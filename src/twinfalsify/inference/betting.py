@@ -264,6 +264,17 @@ def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.nda
     return t, np.repeat(np.arange(k), len(samples))
 
 
+def _checked(samples: HypothesisSamples, delta0: np.ndarray | float
+             ) -> tuple[int, np.ndarray, np.ndarray]:
+    """(H, widths, delta0 per hypothesis); one error naming the hypotheses with y_up <= y_lo."""
+    h = len(samples)
+    width = samples.width
+    if np.any(~(width > 0)):
+        bad = np.flatnonzero(~(width > 0))[:5]
+        raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
+    return h, width, np.broadcast_to(np.asarray(delta0, float), (h,))
+
+
 def ordered_sides(
     samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC,
     orders: int = 1,
@@ -276,12 +287,7 @@ def ordered_sides(
     hypothesis key, copy, position) (``_order_keys``), built in two threads, chunk by chunk
     of hypotheses (cache-sized). ``orders`` K > 1: K independently ordered copies.
     """
-    h = len(samples)
-    width = samples.width
-    if np.any(~(width > 0)):
-        bad = np.flatnonzero(~(width > 0))[:5]
-        raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
-    d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
+    h, width, d0 = _checked(samples, delta0)
     copy = np.zeros(h, np.int64)
     if orders > 1:
         samples, copy = _tile(samples, int(orders))
@@ -359,12 +365,7 @@ def mixture_sides(
     """
     if int(grid) < 1 or not ratio > 1:
         raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, {ratio}")
-    h = len(samples)
-    width = samples.width
-    if np.any(~(width > 0)):
-        bad = np.flatnonzero(~(width > 0))[:5]
-        raise ValueError(f"betting: y_up must exceed y_lo (hypotheses {bad.tolist()})")
-    d0 = np.broadcast_to(np.asarray(delta0, float), (h,))
+    h, width, d0 = _checked(samples, delta0)
     n = samples.n.astype(np.int64)
     nf = samples.n_follow
     offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
