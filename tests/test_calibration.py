@@ -4,6 +4,7 @@ and a tiny end-to-end run with known answers."""
 from __future__ import annotations
 
 import io
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -121,6 +122,9 @@ def test_chunks_partition_the_replicates_and_seeds_do_not_depend_on_chunking(tin
         ({"bias_sizes": [1.0, 2.0]}, "bias_sizes must include 0"),
         ({"bias_features": ["HR", "Spleen"]}, "Spleen"),
         ({"adaptive_batch_size": 0}, "adaptive_batch_size"),
+        ({"adaptive_curtail": 1.0}, "adaptive_curtail"),
+        ({"adaptive_curtail": -0.1}, "adaptive_curtail"),
+        ({"adaptive_curtail": "0.01"}, "adaptive_curtail"),
         ({"adaptive": "yes"}, "adaptive must be true or false"),
         ({"d0_fraction": 1.5}, "d0_fraction"),
     ],
@@ -180,16 +184,20 @@ def test_markdown_summary_reports_the_tables(tiny_run, tiny_cfg):
     assert set(OUTCOMES) >= set(tiny_cfg.bias_features)
 
 
-def test_run_adaptive_equals_adaptive_test(tiny_cfg):
+@pytest.mark.parametrize("curtail", [0.0, 0.2])
+def test_run_adaptive_equals_adaptive_test(tiny_cfg, curtail):
     """The shared observational state per replicate changes nothing: same outcome as
-    ``sequential.adaptive_test`` called afresh, for the oracle and a biased twin."""
+    ``sequential.adaptive_test`` called afresh, for the oracle and a biased twin (with the
+    harness's ``adaptive_curtail`` passed through)."""
+    tiny_cfg = replace(tiny_cfg, adaptive_curtail=curtail)
     rep = cal.build_replicate(tiny_cfg, tiny_cfg.replicate_seed(1))
     base = cal.adaptive_state(tiny_cfg, rep)
     for bias in (0.0, 1.5):  # 0 first: a mutated shared state would show at 1.5
         nodes = cal.shifted_nodes(rep, bias, tiny_cfg.bias_features)
         got = cal.run_adaptive(tiny_cfg, rep, nodes, base)
         want = adaptive_test(rep.hyps, rep.obs, nodes, rep.states, batch_size=25,
-                             alpha=tiny_cfg.alpha, correction=tiny_cfg.correction, seed=rep.seed)
+                             alpha=tiny_cfg.alpha, correction=tiny_cfg.correction, seed=rep.seed,
+                             curtail=curtail)
         for f in ("p_lo", "p_up", "stop_batch", "runs_used", "runs_per_hypothesis", "decision",
                   "nhat", "rejected_lo", "rejected_up"):  # fmt: skip
             np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)

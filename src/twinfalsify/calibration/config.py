@@ -64,6 +64,7 @@ class CalibrationConfig:
     chunks: int = 4  # Snakemake jobs the replicates are spread over (r % chunks)
     adaptive: bool = True  # also run inference.sequential.adaptive_test (betting_sequential)
     adaptive_batch_size: int = 25  # X_0 revealed per batch (budget = runs_per_sequence)
+    adaptive_curtail: float = 0.0  # opt-in curtailment epsilon of the adaptive test (0: off)
 
     @classmethod
     def from_dict(cls, cfg: dict[str, Any] | None, source: str = "calibration config"):
@@ -113,6 +114,9 @@ class CalibrationConfig:
                 f"must be in [1, runs_per_sequence = {self.runs_per_sequence}], "
                 f"got {self.adaptive_batch_size}",
             )
+        c = self.adaptive_curtail
+        if isinstance(c, bool) or not isinstance(c, int | float) or not 0 <= c < 1:
+            raise bad("adaptive_curtail", f"must be in [0, 1), got {self.adaptive_curtail}")
 
     def replicate_seed(self, r: int) -> int:
         """Seed of replicate r: independent streams per r, reproducible whatever the chunking."""
