@@ -51,15 +51,16 @@ uniform mixture over a fixed grid of J constant bets,
     E+(m) = (1/J) sum_j prod_{i<=n} (1 + min(lambda_j, c/m) (x_i - m)),   E- mirrored,
     lambda_j = lambda_min r^j (j = 0..J-1),  lambda_min = sqrt(8 log(1/delta0) / n),
 
-lambda_min being the fixed-n plug-in bet at the largest variance 1/4 (a smaller bet is never
-needed to reach 1/delta0 at a mean gap that bet can detect) and r^(J-1) spanning variances down
-to 1/(4 r^(2(J-1))). The bets depend on n, m and delta0 only, never on the values, so each
-product is a product of independent factors with mean <= 1 under mean <= m (K+): E[E+(m)] <= 1,
-and Markov gives P(E+(m) >= 1/delta) <= delta. A product does not depend on the order of
-its factors: the p-value is a symmetric function of each sample, so no seed enters and no
-decision can flip with one. Each factor is monotone in m as above, so E+ is non-increasing
-(E- non-decreasing) and the crossing and union arguments below hold with E in place of
-max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
+lambda_min being the fixed-n plug-in bet at the largest variance 1/4 (in the Gaussian
+approximation log K ~ n (lambda gap - lambda^2 sigma2 / 2), a bet below lambda_min is best only
+for gaps too small to reach 1/delta0 at n samples whatever the bet) and r^(J-1) spanning
+variances down to 1/(4 r^(2(J-1))). The bets depend on n, m and delta0 only, never on the
+values, so each product is a product of independent factors with mean <= 1 under mean <= m
+(K+): E[E+(m)] <= 1, and Markov gives P(E+(m) >= 1/delta) <= delta. A product does not depend
+on the order of its factors: the p-value is a symmetric function of each sample, so no seed
+enters and no decision can flip with one. Each factor is monotone in m as above, so E+ is non-
+increasing (E- non-decreasing) and the crossing and union arguments below hold with E in place
+of max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
 discretisation of the best bet by at most a factor sqrt(r); measured in docs/statistics.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
