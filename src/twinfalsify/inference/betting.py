@@ -58,9 +58,9 @@ variances down to 1/(4 r^(2(J-1))). The bets depend on n, m and delta0 only, nev
 values, so each product is a product of independent factors with mean <= 1 under mean <= m
 (K+): E[E+(m)] <= 1, and Markov gives P(E+(m) >= 1/delta) <= delta. A product does not depend
 on the order of its factors: the p-value is a symmetric function of each sample, so no seed
-enters and no decision can flip with one. Each factor is monotone in m as above, so E+ is non-
-increasing (E- non-decreasing) and the crossing and union arguments below hold with E in place
-of max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
+enters and no decision can flip with one. Each factor is monotone in m as above, so E+ is
+non-increasing (E- non-decreasing) and the crossing and union arguments below hold with E in
+place of max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
 discretisation of the best bet by at most a factor sqrt(r); measured in docs/statistics.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
