@@ -343,6 +343,11 @@ def ordered_sides(
             OrderedSide(tw.x, tw.lam, tw.offsets, k))
 
 
+def _check_grid(grid: int, ratio: float) -> None:
+    if int(grid) < 1 or not float(ratio) > 1:
+        raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, {ratio}")
+
+
 def _grid_side(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, grid: int,
                ratio: float) -> OrderedSide:
     """J = ``grid`` copies of the groups' values, copy j betting lambda_min r^j throughout."""
@@ -364,8 +369,7 @@ def mixture_sides(
     Order-free (module doc, "Order-free mixture"): the values stay in their listing order,
     which the terminal capital of a constant bet does not see. ``grid`` J copies per side.
     """
-    if int(grid) < 1 or not ratio > 1:
-        raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, {ratio}")
+    _check_grid(grid, ratio)
     h, width, d0 = _checked(samples, delta0)
     n = samples.n.astype(np.int64)
     nf = samples.n_follow
@@ -374,12 +378,11 @@ def mixture_sides(
     is_f = t <= nf[gid]
     fg = np.repeat(np.arange(h), nf)
     xf = np.zeros(len(gid))
-    xf[is_f] = (np.clip(samples.follow.values, samples.y_lo[fg], samples.y_up[fg])
-                - samples.y_lo[fg]) / width[fg]
+    xf[is_f] = (samples.follow_f.values - samples.y_lo[fg]) / width[fg]
     x_lo, x_up = np.where(is_f, xf, 0.0), np.where(is_f, xf, 1.0)
-    tw = samples.twin
+    tw = samples.twin_f
     tg = tw.group_ids()
-    x_tw = (np.clip(tw.values, samples.y_lo[tg], samples.y_up[tg]) - samples.y_lo[tg]) / width[tg]
+    x_tw = (tw.values - samples.y_lo[tg]) / width[tg]
     j, r = int(grid), float(ratio)
     return (_grid_side(x_lo, offs, d0, j, r), _grid_side(x_up, offs, d0, j, r),
             _grid_side(x_tw, tw.offsets, d0, j, r))
@@ -507,9 +510,7 @@ def make_bets(bets: str = "mixture", orders: int | None = None,
         if orders is not None or running_max:
             raise ValueError("betting: orders and running_max apply to bets: plugin (the "
                              "mixture is order-free and uses the terminal capital)")
-        if int(grid) < 1 or not float(grid_ratio) > 1:
-            raise ValueError(f"betting: grid must be >= 1 and grid_ratio > 1, got {grid}, "
-                             f"{grid_ratio}")
+        _check_grid(grid, grid_ratio)
         return Bets("mixture", grid=int(grid), ratio=float(grid_ratio))
     k = default_orders if orders is None else int(orders)
     if k < 1:

@@ -117,24 +117,21 @@ def run_adaptive_shard(
     in_b0 = runs0.in_b0  # real X_0 in B_0: known before any simulation
     st.update(runs0, 0)
     sim_node_runs = 0
-    depth_first = sorted({q[:k] for q in seqs for k in range(1, len(q) + 1)}, key=len,
-                         reverse=True)
+    shard_nodes = {q[:k] for q in seqs for k in range(1, len(q) + 1)}
+    fixed = len(shard_nodes) * budget
+    depth_first = sorted(shard_nodes, key=len, reverse=True)
+    paths = hypothesis_paths(sub, index)
     for b in range(1, st.n_batches + 1):
         act = st.active[idx]
         if not act.any():
             break
         j0, j1 = st.revealed(b - 1), st.revealed(b)
         # runs needed per node this batch: X_0 in B_0 of a running hypothesis using the node
-        need: dict[tuple[int, ...], np.ndarray] = {}
-        for q, a, h in zip(seqs, act, idx, strict=True):
-            if a:
-                for k in range(1, len(q) + 1):
-                    v = need.setdefault(q[:k], np.zeros(j1 - j0, dtype=bool))
-                    v |= in_b0[h, j0:j1]
-        covered = {v: np.zeros(j1 - j0, dtype=bool) for v in need}
+        need = node_needs(paths, np.where(act, j1, 0), in_b0[idx], len(index))[:, j0:j1]
+        covered = np.zeros_like(need)
         done_runs = 0
-        for leaf in (v for v in depth_first if v in need):
-            rows = np.flatnonzero(need[leaf] & ~covered[leaf])
+        for leaf in depth_first:
+            rows = np.flatnonzero(need[index[leaf]] & ~covered[index[leaf]])
             if rows.size == 0:
                 continue
             doses = np.broadcast_to(actions.doses(np.asarray(leaf)), (rows.size, len(leaf), 2))
@@ -147,10 +144,10 @@ def run_adaptive_shard(
             feats, status, message = plausible(res)  # implausible values fail, as in run_shard
             for s in range(1, len(leaf) + 1):
                 node = leaf[:s]
-                new = ~covered[node][rows]  # a prefix may hold some of these rows already
+                new = ~covered[index[node]][rows]  # a prefix may hold some rows already
                 if not new.any():
                     continue
-                covered[node][rows[new]] = True
+                covered[index[node], rows[new]] = True
                 vals = feats[new, s - 1, :]
                 nodes.values[index[node], j0 + rows[new]] = vals
                 frames.append(_rows(node_name(node), s, vals, status[new], message[new],
@@ -159,7 +156,6 @@ def run_adaptive_shard(
         sim_node_runs += done_runs
         st.update(runs_now(), b)
         running = int(st.active[idx].sum())
-        fixed = len({q[:k] for q in seqs for k in range(1, len(q) + 1)}) * budget
         print(f"[adaptive {twin.name} shard {shard}] batch {b}/{st.n_batches} (X_0 {j1}/{budget})"
               f": {len(idx) - running} decided, {running} undecided parameter sets; "
               f"node-runs {sim_node_runs:,} of {fixed:,} ({fixed - sim_node_runs:,} saved), "
@@ -167,7 +163,7 @@ def run_adaptive_shard(
     runs = runs_now()
     p_lo, p_up, nhat = st.p_values(runs)
     used = st.runs_used()
-    n_failed = np.array([runs.failed[h, : used[h]].sum() for h in range(h_total)])
+    n_failed = (runs.failed & (np.arange(m)[None, :] < used[:, None])).sum(axis=1)
     dec = pd.DataFrame({
         "hyp_id": hyps["hyp_id"].to_numpy()[idx], "stop_batch": st.stop_batch[idx],
         "runs_used": used[idx],
@@ -177,15 +173,13 @@ def run_adaptive_shard(
     })  # fmt: skip
     rows = (pd.concat(frames, ignore_index=True) if frames
             else pd.DataFrame(columns=list(NODE_COLUMNS)))
-    paths = hypothesis_paths(sub, index)
     per_node = node_needs(paths, used[idx], in_b0[idx], len(index)).sum(axis=1)
-    shard_nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
     summary = {
         "shard": shard, "batch_size": int(batch_size), "budget": budget,
         "parameter_sets": len(idx), "node_rows": len(rows),
         "twin_hours_adaptive": int(per_node.sum()),
-        "twin_hours_fixed": len(shard_nodes) * budget,
-        "runs_saved": len(shard_nodes) * budget - len(rows),
+        "twin_hours_fixed": fixed,
+        "runs_saved": fixed - len(rows),
         "decisions": {
             side: pd.Series(dec[f"decision_{side}"]).value_counts().to_dict()
             for side in ("lo", "up")
