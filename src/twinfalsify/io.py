@@ -85,18 +85,20 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
     except ContractError as exc:
         log.error("ERROR: %s", exc)
         sys.exit(1)
-    except OSError as exc:
-        if exc.filename is None:  # not about a file: a bug, keep the traceback
+    except Exception as exc:
+        what = _file_error(exc) if isinstance(exc, OSError) else None
+        if what:
+            log.error("ERROR: %s", what)
+        else:  # a bug: keep the traceback
             log.error("ERROR: unexpected failure in rule %s:\n%s", snakemake.rule,
                       traceback.format_exc())
-        else:  # read-only or full results folder, a file where a folder should be
-            log.error("ERROR: %s: %s", exc.filename, exc.strerror or exc)
         sys.exit(1)
-    except Exception:
-        log.error(
-            "ERROR: unexpected failure in rule %s:\n%s", snakemake.rule, traceback.format_exc()
-        )
-        sys.exit(1)
+
+
+def _file_error(exc: OSError) -> str | None:
+    """One line for an OSError about a file (read-only or full results folder, a file where
+    a folder should be, a missing input), or None when it names no file (then it is a bug)."""
+    return None if exc.filename is None else f"{exc.filename}: {exc.strerror or exc}"
 
 
 def cli_main(main: Callable[[], int | None], prog: str) -> int:
@@ -113,9 +115,9 @@ def cli_main(main: Callable[[], int | None], prog: str) -> int:
     except ImportError as exc:
         what = f"cannot import {exc.name or ''}: {exc}".replace(":  ", ": ")
     except OSError as exc:
-        if exc.filename is None:
+        what = _file_error(exc)
+        if what is None:
             raise
-        what = f"{exc.filename}: {exc.strerror or exc}"
     print(f"{prog}: error: {what}", file=sys.stderr, flush=True)
     return 2
 
