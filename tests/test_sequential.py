@@ -98,16 +98,17 @@ def _world(h: int, n_obs: int, m: int, q_lo: float, twin_mean: float, propensity
     return hyps, obs, runs
 
 
-@pytest.mark.parametrize("curtail", [0.0, 0.2])
-def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary(curtail):
+@pytest.mark.parametrize(("curtail", "combine"),
+                         [(0.0, "union"), (0.2, "union"), (0.0, "product"), (0.2, "product")])
+def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary(curtail, combine):
     """Twin mean = Q_lo (H_lo true, at its boundary): P(p_lo <= a) <= a at data-dependent stops
-    (Holm-aware futility and, opt-in, curtailment only choose the stops)."""
+    (Holm-aware futility and, opt-in, curtailment only choose the stops), for both rules."""
     rng = np.random.default_rng(2)
     h = 2000
     hyps, obs, runs = _world(h, 300, 400, q_lo=0.4, twin_mean=0.4, propensity=1.0, rng=rng)
     st = SequentialState(hyps, obs, None, budget=400, batch_size=25, alpha=0.05,
                          n_family=np.full(h, 20),  # lenient a* = 0.0025: more early stops
-                         curtail=curtail)
+                         curtail=curtail, combine=combine)
     run_to_stop(st, runs)
     p_lo, _, _ = st.p_values(runs)
     for a in (0.05, 0.2, 0.5):

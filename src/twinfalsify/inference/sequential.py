@@ -71,11 +71,21 @@ from twinfalsify.inference.betting import (
     ordered_sides,
 )
 from twinfalsify.inference.multiple_testing import correct
+from twinfalsify.inference.product import (
+    GRID_CELLS,
+    SUB_STEPS,
+    grid,
+    mirrored,
+    obs_cell_capital,
+    product_stat,
+    twin_grid,
+)
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
 UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
 HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
+COMBINES = ("union", "product")  # how the observational and twin capitals combine (doc)
 
 
 def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
@@ -197,6 +207,10 @@ class SequentialState:
     # opt-in curtailment (doc (d)): stop a side when the estimated probability that the
     # full budget rejects it at its Holm-aware level is below this epsilon (0: off)
     curtail: float = 0.0
+    # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in)
+    combine: str = "union"
+    grid_cells: int = GRID_CELLS  # product only: bet cells of the exact inf over m
+    grid_sub: int = SUB_STEPS  # product only: twin sub-steps per bet cell
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -207,6 +221,9 @@ class SequentialState:
                              f"{self.batch_size}, {self.budget}")
         if not 0 < self.alpha < 1:
             raise ValueError(f"sequential: alpha must be in (0, 1), got {self.alpha}")
+        if self.combine not in COMBINES:
+            raise ValueError(f"sequential: combine must be one of {', '.join(COMBINES)}, "
+                             f"got {self.combine!r}")
         nf = family_sizes(self.hyps) if self.n_family is None else np.asarray(self.n_family)
         self.n_family = np.broadcast_to(nf, (h,)).astype(np.int64)
         self.a_star = self.alpha / self.n_family  # most stringent Holm threshold
@@ -231,10 +248,18 @@ class SequentialState:
         lo, up = self.lo.take(g), self.up.take(g)
         self.l_star, self.l_fut = np.zeros(h), np.zeros(h)
         self.u_star, self.u_fut = np.ones(h), np.ones(h)
-        self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
-        self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
-        self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
-        self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
+        if self.combine == "union":
+            self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
+            self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
+            self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
+            self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
+        else:  # product: the observational capital per grid cell (H_up through x -> 1 - x)
+            self.t_grid = grid(self.grid_cells, self.grid_sub)
+            self.g_cell = np.zeros((h, 2, 2, self.grid_cells))  # hyp, side, (left, right), cell
+            for col, side in ((0, lo), (1, mirrored(up))):
+                self.g_cell[g, col] = np.stack(
+                    obs_cell_capital(side.x, side.offsets, grid(self.grid_cells), self.c),
+                    axis=1)
         self.side = np.zeros((h, 2), dtype=np.int8)
         # level at which a side was found futile: alpha ("primary": p > alpha for sure) or a
         # Holm-aware level alpha / 2^q < alpha (p > that level for sure); 0 if not futile
@@ -286,13 +311,30 @@ class SequentialState:
         upto = np.full(len(self.hyps), j)
         tw, nhat = self._twin_prefix(runs, upto, act)
         und = self.side[act] == UNDECIDED
+        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)  # runs that can still enter
+        lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
+        decide = self._decide_union if self.combine == "union" else self._decide_product
+        rej, fut, lvl, cur_m, cur_lev = decide(tw, act, r, lam)
+        new = np.where(rej, REJECTED, np.where(fut, FUTILE, UNDECIDED)).astype(np.int8)
+        if self.curtail > 0:
+            cur = self._curtailed(runs, tw, nhat, act, j, lam, cur_m, cur_lev)
+            new = np.where((new == UNDECIDED) & cur, CURTAILED, new).astype(np.int8)
+        newly = und & (new == FUTILE)
+        self.side[act] = np.where(und, new, self.side[act])
+        self.fut_level[act] = np.where(newly, lvl, self.fut_level[act])
+        # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
+        done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
+        self.stop_batch[act[done]] = b
+
+    def _decide_union(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray
+                      ) -> tuple[np.ndarray, ...]:
+        """Union rule: (rejected, futile, futility level, curtailment point m, its log-level),
+        each (len(act), 2) for (H_lo, H_up); rules (a)-(c) of the module doc."""
         # (a) early rejection at a*: twin capital at the observational bound at a*
         lev_star = np.log(2.0 / self.a_star[act])
         rej_lo = log_capital(tw, self.l_star[act], -1, True, self.c) >= lev_star
         rej_up = log_capital(tw, self.u_star[act], +1, True, self.c) >= lev_star
         # (b) futility at alpha: best reachable capital up to the budget
-        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
-        lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
         lev = np.full(len(act), np.log(2.0 / self.alpha))
         best_lo, best_up = self._best(tw, act, r, lam, self.l_fut[act], self.u_fut[act])
         fut_lo, fut_up = best_lo < lev, best_up < lev
@@ -311,20 +353,53 @@ class SequentialState:
             fut_lo, fut_up = fut_lo | hol_lo, fut_up | hol_up
             lvl_lo = np.where(hol_lo, a_lo, lvl_lo)
             lvl_up = np.where(hol_up, a_up, lvl_up)
-        new = np.stack([np.where(rej_lo, REJECTED, np.where(fut_lo, FUTILE, UNDECIDED)),
-                        np.where(rej_up, REJECTED, np.where(fut_up, FUTILE, UNDECIDED))],
-                       axis=1).astype(np.int8)
-        if self.curtail > 0:
-            cur = self._curtailed(runs, tw, nhat, act, j, lam)
-            new[:, 0] = np.where((new[:, 0] == UNDECIDED) & cur[:, 0], CURTAILED, new[:, 0])
-            new[:, 1] = np.where((new[:, 1] == UNDECIDED) & cur[:, 1], CURTAILED, new[:, 1])
-        newly = und & (new == FUTILE)
-        self.side[act] = np.where(und, new, self.side[act])
-        lv = np.stack([lvl_lo, lvl_up], axis=1)
-        self.fut_level[act] = np.where(newly, lv, self.fut_level[act])
-        # stop when both sides are decided or the budget is spent (sides may stay UNDECIDED)
-        done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
-        self.stop_batch[act[done]] = b
+        # curtailment (d): at L, U of the side's Holm-aware level alpha / 2^q
+        cur_m = np.stack([self.l_hol[act], self.u_hol[act]], axis=1)
+        cur_lev = np.log(2.0 * 2.0 ** self.q_hol[act] / self.alpha)
+        return (np.stack([rej_lo, rej_up], axis=1), np.stack([fut_lo, fut_up], axis=1),
+                np.stack([lvl_lo, lvl_up], axis=1), cur_m, cur_lev)
+
+    def _decide_product(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray,
+                        lam: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Product rule (``inference.product``); same outputs as :meth:`_decide_union`.
+
+        Early rejection: the exact lower bound of log inf_m G(m) K(m) >= log(1/a*).
+        Futility at level a: no continuation up to the budget can reach log(1/a). The
+        best reachable value is at most G(m) K_best(m) at any single m (the inf is below
+        every point), with K_best(m) = max(max_{t<=tau} K_t(m), K_tau(m) (1 + min(lambda_bar,
+        c/(1-m)) m)^r) as in rule (b); the min over the grid points m_{k+1} (where the
+        cell value G^(k)(m_{k+1}) is exact) is used. Holm-aware: a = alpha/(F+1) exactly
+        (no bound to recompute, so no quantisation).
+        """
+        k_lo, e_lo = twin_grid(tw, self.t_grid, self.c)
+        k_up, e_up = twin_grid(mirrored(tw), self.t_grid, self.c)
+        g = self.g_cell[act]
+        stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], k_lo),
+                         product_stat(g[:, 1, 0], g[:, 1, 1], k_up)], axis=1)
+        rej = stat >= np.log(1.0 / self.a_star[act])[:, None]
+        # best reachable at the bet cells' right ends m_{k+1}, where G^(k) is exact
+        ends = np.arange(1, self.grid_cells + 1) * self.grid_sub
+        m = self.t_grid[ends]
+        with np.errstate(divide="ignore"):
+            cap = self.c / (1.0 - m)
+        grow = r[:, None] * np.log1p(np.minimum(lam[:, None], cap[None, :]) * m[None, :])
+        best = np.stack([g[:, 0, 1] + np.maximum(k_lo[:, ends], e_lo[:, ends] + grow),
+                         g[:, 1, 1] + np.maximum(k_up[:, ends], e_up[:, ends] + grow)], axis=1)
+        at, top = best.argmin(axis=2), best.min(axis=2)
+        fut = top < np.log(1.0 / self.alpha)
+        lvl = np.where(fut, self.alpha, 0.0)
+        lev = np.full(top.shape, np.log(1.0 / self.alpha))
+        if self.holm_aware:
+            f = np.broadcast_to(self.primary_futile()[act][:, None], top.shape)
+            hol = (f > 0) & ~fut & (top < np.log((f + 1.0) / self.alpha))
+            fut = fut | hol
+            lvl = np.where(hol, self.alpha / (f + 1.0), lvl)
+            lev = np.log((f + 1.0) / self.alpha)
+        # curtailment at the minimising point, in the original coordinates (H_up mirrored)
+        ms = m[at]
+        cur_m = np.stack([ms[:, 0], 1.0 - ms[:, 1]], axis=1)
+        g_at = np.take_along_axis(g[:, :, 1], at[:, :, None], axis=2)[:, :, 0]
+        return rej, fut, lvl, cur_m, lev - g_at
 
     def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
               lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -341,12 +416,15 @@ class SequentialState:
         return best_lo, best_up
 
     def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
-                   j: int, lam_bar: np.ndarray) -> np.ndarray:
+                   j: int, lam_bar: np.ndarray, at_m: np.ndarray, at_lev: np.ndarray
+                   ) -> np.ndarray:
         """(len(act), 2) bool: P(the full budget rejects at the side's Holm-aware level) <
         ``curtail``, under a normal approximation of the remaining log-capital increments.
 
-        At m = L (H_lo; U for H_up) at level a = alpha / 2^q, each remaining run with X_0 in
-        B_0 enters with the observed rate pi = nhat / (revealed runs with X_0 in B_0) and
+        At the point ``at_m`` (union rule: L for H_lo, U for H_up, at the side's level
+        a = alpha / 2^q; product rule: the point minimising the best reachable G K) against
+        the log-level ``at_lev`` (union: log(2/a); product: log(1/a) - log G(m)), each
+        remaining run with X_0 in B_0 enters with the observed rate pi = nhat / (revealed runs with X_0 in B_0) and
         then adds g(x) = log(1 - min(lam, c/(1-L)) (x - L)), x drawn from the values seen so
         far, lam = the largest future bet (``future_bet_bound``); so
         log K_budget ~ N(log K_tau + r mu, r v) with mu, v the mean and variance of the
@@ -359,9 +437,7 @@ class SequentialState:
         pi = np.where(seen_b0 > 0, nhat / np.maximum(seen_b0, 1), 0.0)
         out = np.zeros((len(act), 2), dtype=bool)
         for col, sign in ((0, -1), (1, +1)):
-            q = self.q_hol[act, col]
-            m = (self.l_hol if col == 0 else self.u_hol)[act]
-            lev = np.log(2.0 * 2.0 ** q / self.alpha)
+            m, lev = at_m[:, col], at_lev[:, col]
             cap = self.c / (1.0 - m) if sign < 0 else self.c / np.maximum(m, 1e-12)
             bet = np.minimum(lam_bar, cap)
             g = np.log1p(np.clip(sign * bet[gid] * (tw.x - m[gid]), -self.c, None))
@@ -411,7 +487,15 @@ class SequentialState:
         tw, nhat = self._twin_prefix(runs, used, groups)
         p_lo, p_up = np.ones(h), np.ones(h)
         ok = (self.obs.n > 0) & (nhat > 0)
-        if ok.any():
+        if self.combine == "product" and ok.any():
+            g = np.flatnonzero(ok)
+            t = tw.take(g)
+            k_lo, _ = twin_grid(t, self.t_grid, self.c)
+            k_up, _ = twin_grid(mirrored(t), self.t_grid, self.c)
+            gc = self.g_cell[g]
+            p_lo[g] = np.minimum(1.0, np.exp(-product_stat(gc[:, 0, 0], gc[:, 0, 1], k_lo)))
+            p_up[g] = np.minimum(1.0, np.exp(-product_stat(gc[:, 1, 0], gc[:, 1, 1], k_up)))
+        elif ok.any():
             g = np.flatnonzero(ok)
             lo, up, t = self.lo.take(g), self.up.take(g), tw.take(g)
             s = self.obs_samples
@@ -537,6 +621,7 @@ def adaptive_test(
     holm_aware: bool | None = None,
     shards: np.ndarray | None = None,
     curtail: float = 0.0,
+    combine: str = "union",
 ) -> AdaptiveOutcome:
     """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
 
@@ -545,7 +630,8 @@ def adaptive_test(
     (``node_needs``); the fixed scheme simulates every node for the budget.
     ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
     Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
-    futile sides per shard as the workflow's parallel shards do (default: whole family).
+    futile sides per shard as the workflow's parallel shards do (default: whole family);
+    ``combine``: "union" (default) or "product" (``inference.product``).
     """
     m = nodes.x0.shape[0]
     budget = m if budget is None else int(budget)
@@ -555,7 +641,8 @@ def adaptive_test(
     if holm_aware is None:
         holm_aware = correction in HOLM_AWARE
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
-                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail)
+                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail,
+                         combine=combine)
     run_to_stop(st, runs)
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
