@@ -1,7 +1,8 @@
 """Twin-hours and rejections: fixed scheme vs adaptive (sequential) scheme on a study config.
 
     PYTHONPATH=src python benchmarks/bench_adaptive.py [--config config/config.yaml]
-        [--batch-sizes 50 100 250 500] [--twins oracle biased fitted]
+        [--batch-sizes 50 100 250 500] [--twins oracle biased fitted] [--curtail 0.01]
+        [--combine union|product]
     PYTHONPATH=src python benchmarks/bench_adaptive.py --config config/test.yaml \
         --calibrate 20 --bias-levels 0 5 10 25 --batch-sizes 25
 
@@ -89,13 +90,14 @@ def in_process(spec: dict) -> dict:
             if k not in ("protocol", "workers", "timeout_s", "retries")}
 
 
-def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets) -> dict:
+def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets,
+              combine: str = "union") -> dict:
     """Opt-in curtailment at each epsilon: twin-hours ratio and fixed betting rejections kept."""
     out = {}
     ids = hyps["hyp_id"].to_numpy()
     for eps in curtail:
         o = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
-                          seed=seed, shards=shard_of, curtail=eps)
+                          seed=seed, shards=shard_of, curtail=eps, combine=combine)
         ad = {(i, "lo") for i in ids[o.rejected_lo]} | {(i, "up") for i in ids[o.rejected_up]}
         out[f"ratio_curtail_{eps:g}"] = round(o.twin_hours_adaptive / o.twin_hours_fixed, 4)
         out[f"kept_betting_curtail_{eps:g}"] = len(ad & fixed_sets.get("betting", set()))
@@ -103,7 +105,8 @@ def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets) -
 
 
 def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: dict,
-            alpha: float, seed: int, curtail: tuple[float, ...] = ()) -> list[dict]:
+            alpha: float, seed: int, curtail: tuple[float, ...] = (),
+            combine: str = "union") -> list[dict]:
     """Fixed vs adaptive for one twin: one row per batch size."""
     twin = make_twin(name, in_process(spec), st.ctx)
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
@@ -126,14 +129,14 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
     for bs in batch_sizes:
         t1 = time.monotonic()
         out = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
-                            seed=seed, shards=shard_of)
+                            seed=seed, shards=shard_of, combine=combine)
         plain = adaptive_test(hyps, st.obs, nodes, st.states, batch_size=bs, alpha=alpha,
-                              seed=seed, holm_aware=False)
+                              seed=seed, holm_aware=False, combine=combine)
         ids = hyps["hyp_id"].to_numpy()
         ad = {(i, "lo") for i in ids[out.rejected_lo]}
         ad |= {(i, "up") for i in ids[out.rejected_up]}
         rows.append({
-            "twin": name, "batch_size": bs,
+            "twin": name, "batch_size": bs, "combine": combine,
             "hours_fixed": out.twin_hours_fixed, "hours_adaptive": out.twin_hours_adaptive,
             "hours_ratio": round(out.twin_hours_adaptive / max(out.twin_hours_fixed, 1), 4),
             "hours_paper": out.twin_hours_paper,
@@ -158,7 +161,7 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
             "ratio_no_holm_aware": round(plain.twin_hours_adaptive
                                          / max(plain.twin_hours_fixed, 1), 4),
             "rejected_no_holm_aware": int(plain.rejected_lo.sum() + plain.rejected_up.sum()),
-            **curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets),
+            **curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets, combine),
             "seconds": round(time.monotonic() - t1, 1),
         })  # fmt: skip
     return rows
@@ -173,6 +176,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--bias-levels", type=float, nargs="+", default=[0.0, 5.0, 10.0, 25.0])
     ap.add_argument("--curtail", type=float, nargs="*", default=[],
                     help="also run opt-in curtailment at these epsilons")
+    ap.add_argument("--combine", choices=["union", "product"], default="union",
+                    help="how the adaptive test combines the two capitals")
     args = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
@@ -211,7 +216,7 @@ def main(argv: list[str] | None = None) -> None:
           f"(built in {time.monotonic() - t0:.0f} s)", flush=True)
     for name in args.twins or list(cfg["twins"]):
         for row in compare(st, name, cfg["twins"][name], args.batch_sizes, methods, alpha,
-                           seed, tuple(args.curtail)):
+                           seed, tuple(args.curtail), args.combine):
             rows.append(row)
             print(json.dumps(row), flush=True)
     print(pd.DataFrame(rows).to_markdown(index=False))

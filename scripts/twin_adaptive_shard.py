@@ -49,6 +49,7 @@ def main(sm):
         seed=int(sm.params.seed),
         correction=str(testing.get("correction", "holm")),
         curtail=float(runs_cfg.get("curtail", 0.0)),
+        combine=str(runs_cfg.get("combine", "union")),
         log=_Log(),
     )
     log.info("shard %s: %s", sm.wildcards.shard, summary)

@@ -47,19 +47,20 @@ def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
 
 
 @pytest.mark.slow
-def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin):
+@pytest.mark.parametrize("combine", ["union", "product"])
+def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin, combine):
     study, twin, runs = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
     shard_of = np.zeros(len(study.hyps), np.int64)
     for k in range(len(study.plan.shards)):
         shard_of[shard_hypotheses(study.hyps, study.plan, k)] = k
     ref = adaptive_test(study.hyps, study.obs, nodes, study.states, batch_size=40,
-                        shards=shard_of)
+                        shards=shard_of, combine=combine)
     decs, rows, hours = [], [], 0
     for k in range(len(study.plan.shards)):
         r, dec, summary = run_adaptive_shard(
             twin, study.plan, k, study.x0, study.actions, study.hyps, study.obs, study.states,
-            batch_size=40, log=io.StringIO())
+            batch_size=40, combine=combine, log=io.StringIO())
         decs.append(dec)
         rows.append(r)
         hours += summary["twin_hours_adaptive"]

@@ -125,6 +125,7 @@ def test_chunks_partition_the_replicates_and_seeds_do_not_depend_on_chunking(tin
         ({"adaptive_curtail": 1.0}, "adaptive_curtail"),
         ({"adaptive_curtail": -0.1}, "adaptive_curtail"),
         ({"adaptive_curtail": "0.01"}, "adaptive_curtail"),
+        ({"adaptive_combine": "sum"}, "adaptive_combine must be one of union, product"),
         ({"adaptive": "yes"}, "adaptive must be true or false"),
         ({"d0_fraction": 1.5}, "d0_fraction"),
     ],
@@ -184,12 +185,13 @@ def test_markdown_summary_reports_the_tables(tiny_run, tiny_cfg):
     assert set(OUTCOMES) >= set(tiny_cfg.bias_features)
 
 
-@pytest.mark.parametrize("curtail", [0.0, 0.2])
-def test_run_adaptive_equals_adaptive_test(tiny_cfg, curtail):
+@pytest.mark.parametrize(("curtail", "combine"),
+                         [(0.0, "union"), (0.2, "union"), (0.0, "product")])
+def test_run_adaptive_equals_adaptive_test(tiny_cfg, curtail, combine):
     """The shared observational state per replicate changes nothing: same outcome as
     ``sequential.adaptive_test`` called afresh, for the oracle and a biased twin (with the
     harness's ``adaptive_curtail`` passed through)."""
-    tiny_cfg = replace(tiny_cfg, adaptive_curtail=curtail)
+    tiny_cfg = replace(tiny_cfg, adaptive_curtail=curtail, adaptive_combine=combine)
     rep = cal.build_replicate(tiny_cfg, tiny_cfg.replicate_seed(1))
     base = cal.adaptive_state(tiny_cfg, rep)
     for bias in (0.0, 1.5):  # 0 first: a mutated shared state would show at 1.5
@@ -197,7 +199,7 @@ def test_run_adaptive_equals_adaptive_test(tiny_cfg, curtail):
         got = cal.run_adaptive(tiny_cfg, rep, nodes, base)
         want = adaptive_test(rep.hyps, rep.obs, nodes, rep.states, batch_size=25,
                              alpha=tiny_cfg.alpha, correction=tiny_cfg.correction, seed=rep.seed,
-                             curtail=curtail)
+                             curtail=curtail, combine=combine)
         for f in ("p_lo", "p_up", "stop_batch", "runs_used", "runs_per_hypothesis", "decision",
                   "nhat", "rejected_lo", "rejected_up"):  # fmt: skip
             np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-
 from test_sequential import _side, _state, _world
+
 from twinfalsify.bounds import ObservationalSide
 from twinfalsify.inference.betting import log_capital
 from twinfalsify.inference.multiple_testing import correct

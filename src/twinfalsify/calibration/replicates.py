@@ -284,6 +284,7 @@ def adaptive_state(cfg: CalibrationConfig, rep: Replicate) -> SequentialState:
         rep.hyps, rep.obs, rep.states, budget=int(rep.nodes.x0.shape[0]),
         batch_size=cfg.adaptive_batch_size, alpha=cfg.alpha, seed=rep.seed,
         holm_aware=cfg.correction in HOLM_AWARE, curtail=cfg.adaptive_curtail,
+        combine=cfg.adaptive_combine,
     )  # fmt: skip
 
 

@@ -377,14 +377,18 @@ class SequentialState:
         stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], k_lo),
                          product_stat(g[:, 1, 0], g[:, 1, 1], k_up)], axis=1)
         rej = stat >= np.log(1.0 / self.a_star[act])[:, None]
-        # best reachable at the bet cells' right ends m_{k+1}, where G^(k) is exact
-        ends = np.arange(1, self.grid_cells + 1) * self.grid_sub
-        m = self.t_grid[ends]
+        # best reachable, bounded above at every twin grid point u: G(u) <= G^(k)(m_k) inside
+        # bet cell k (G decreasing), exact G^(k)(m_{k+1}) at its right end
+        m = self.t_grid
         with np.errstate(divide="ignore"):
             cap = self.c / (1.0 - m)
         grow = r[:, None] * np.log1p(np.minimum(lam[:, None], cap[None, :]) * m[None, :])
-        best = np.stack([g[:, 0, 1] + np.maximum(k_lo[:, ends], e_lo[:, ends] + grow),
-                         g[:, 1, 1] + np.maximum(k_up[:, ends], e_up[:, ends] + grow)], axis=1)
+        g_up_at = np.concatenate([np.repeat(g[:, :, 0], self.grid_sub, axis=2),
+                                  g[:, :, 1, -1:]], axis=2)  # (A, 2, M S + 1)
+        ends = np.arange(1, self.grid_cells) * self.grid_sub
+        g_up_at[:, :, ends] = np.minimum(g_up_at[:, :, ends], g[:, :, 1, :-1])
+        best = g_up_at + np.stack([np.maximum(k_lo, e_lo + grow),
+                                   np.maximum(k_up, e_up + grow)], axis=1)
         at, top = best.argmin(axis=2), best.min(axis=2)
         fut = top < np.log(1.0 / self.alpha)
         lvl = np.where(fut, self.alpha, 0.0)
@@ -398,7 +402,7 @@ class SequentialState:
         # curtailment at the minimising point, in the original coordinates (H_up mirrored)
         ms = m[at]
         cur_m = np.stack([ms[:, 0], 1.0 - ms[:, 1]], axis=1)
-        g_at = np.take_along_axis(g[:, :, 1], at[:, :, None], axis=2)[:, :, 0]
+        g_at = np.take_along_axis(g_up_at, at[:, :, None], axis=2)[:, :, 0]
         return rej, fut, lvl, cur_m, lev - g_at
 
     def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
@@ -424,9 +428,9 @@ class SequentialState:
         At the point ``at_m`` (union rule: L for H_lo, U for H_up, at the side's level
         a = alpha / 2^q; product rule: the point minimising the best reachable G K) against
         the log-level ``at_lev`` (union: log(2/a); product: log(1/a) - log G(m)), each
-        remaining run with X_0 in B_0 enters with the observed rate pi = nhat / (revealed runs with X_0 in B_0) and
-        then adds g(x) = log(1 - min(lam, c/(1-L)) (x - L)), x drawn from the values seen so
-        far, lam = the largest future bet (``future_bet_bound``); so
+        remaining run with X_0 in B_0 enters with the observed rate pi = nhat / (revealed
+        runs with X_0 in B_0) and then adds g(x) = log(1 - min(lam, c/(1-m)) (x - m)), x drawn
+        from the values seen so far, lam = the largest future bet (``future_bet_bound``); so
         log K_budget ~ N(log K_tau + r mu, r v) with mu, v the mean and variance of the
         per-run increment (0 w.p. 1 - pi). A heuristic: it never affects validity (stopping
         only forgoes power), and its power cost is measured (docs/sequential.md).

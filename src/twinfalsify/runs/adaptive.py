@@ -84,6 +84,7 @@ def run_adaptive_shard(
     budget: int | None = None,
     correction: str = "holm",
     curtail: float = 0.0,
+    combine: str = "union",
     log=sys.stderr,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
     """Simulate one shard adaptively: (node rows simulated, decisions, summary).
@@ -101,7 +102,8 @@ def run_adaptive_shard(
                       x0=x0[list(FEATURES)].to_numpy(float))
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed,
                          n_family=family_sizes(hyps), only=mine,
-                         holm_aware=correction in HOLM_AWARE, holm_scope=mine, curtail=curtail)
+                         holm_aware=correction in HOLM_AWARE, holm_scope=mine, curtail=curtail,
+                         combine=combine)
     sub = hyps.iloc[idx]
     seqs = [tuple(int(a) for a in s) for s in sub["actions"].tolist()]
     seeds = plan.run_seeds()
