@@ -4,11 +4,9 @@ agreement with the union rule's capitals, validity and power against the union r
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
-from test_sequential import _side, _state, _world
+from test_sequential import _side, _state, _world, concat_worlds
 
-from twinfalsify.bounds import ObservationalSide
 from twinfalsify.inference.betting import log_capital
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.product import (
@@ -103,18 +101,8 @@ def test_cell_bound_never_exceeds_the_inf_over_m(seed):
 
 
 def _mixed_world(rng, h=400, m=500):
-    parts = [_world(h // 4, 300, m, 0.45, tm, 0.8, rng, b0_frac=0.4)
-             for tm in (0.2, 0.3, 0.38, 0.5)]
-    hyps = pd.concat([p[0] for p in parts], ignore_index=True)
-    from twinfalsify.inference.samples import Ragged
-    from twinfalsify.inference.sequential import TwinRuns
-    obs = ObservationalSide(np.concatenate([p[1].n for p in parts]), Ragged.from_groups(
-        [g for p in parts for g in (p[1].follow.group(i) for i in range(len(p[1].follow)))]))
-    runs = TwinRuns(
-        Ragged.from_groups([p[2].values.group(i) for p in parts for i in range(len(p[2].values))]),
-        np.concatenate([p[2].run for p in parts]),
-        np.concatenate([p[2].in_b0 for p in parts]), np.concatenate([p[2].failed for p in parts]))
-    return hyps, obs, runs
+    return concat_worlds([_world(h // 4, 300, m, 0.45, tm, 0.8, rng, b0_frac=0.4)
+                          for tm in (0.2, 0.3, 0.38, 0.5)])
 
 
 def test_product_futility_never_loses_a_rejection_and_rejects_more_than_union():

@@ -79,6 +79,18 @@ def test_confidence_sequence_is_time_uniform(dist):
         assert hit.mean() > 0.005  # the test has teeth: the sequence does get near the level
 
 
+def concat_worlds(parts: list) -> tuple:
+    """One study from several ``_world`` outputs (hypotheses stacked in order)."""
+    hyps = pd.concat([p[0] for p in parts], ignore_index=True)
+    obs = ObservationalSide(np.concatenate([p[1].n for p in parts]), Ragged.from_groups(
+        [g for p in parts for g in (p[1].follow.group(i) for i in range(len(p[1].follow)))]))
+    runs = TwinRuns(
+        Ragged.from_groups([p[2].values.group(i) for p in parts for i in range(len(p[2].values))]),
+        np.concatenate([p[2].run for p in parts]),
+        np.concatenate([p[2].in_b0 for p in parts]), np.concatenate([p[2].failed for p in parts]))
+    return hyps, obs, runs
+
+
 def _world(h: int, n_obs: int, m: int, q_lo: float, twin_mean: float, propensity: float,
            rng: np.random.Generator, b0_frac: float = 1.0):
     """h hypotheses in [0, 1]: obs followers Beta-ish around q/propensity, twin Bernoulli-ish."""
@@ -128,13 +140,7 @@ def test_futility_never_loses_a_rejection_and_early_rejection_matches_p():
     parts = [_world(h // 4, 400, m, 0.4, tm, 0.7, rng, b0_frac=0.3) for tm in (0.05, 0.15, 0.3)]
     # L > 1/2: the K- bet at L is truncated at c/(1-L) > 2c, so the future factor exceeds 1 + c
     parts.append(_world(h // 4, 400, m, 0.8, 0.7, 0.95, rng, b0_frac=0.3))
-    hyps = pd.concat([p[0] for p in parts], ignore_index=True)
-    obs = ObservationalSide(np.concatenate([p[1].n for p in parts]), Ragged.from_groups(
-        [g for p in parts for g in (p[1].follow.group(i) for i in range(len(p[1].follow)))]))
-    runs = TwinRuns(
-        Ragged.from_groups([p[2].values.group(i) for p in parts for i in range(len(p[2].values))]),
-        np.concatenate([p[2].run for p in parts]),
-        np.concatenate([p[2].in_b0 for p in parts]), np.concatenate([p[2].failed for p in parts]))
+    hyps, obs, runs = concat_worlds(parts)
     nf = np.full(h, 2 * h)
     seq = _state(hyps, obs, runs, m, 20, n_family=nf)
     full = _state(hyps, obs, runs, m, m, n_family=nf, holm_aware=False)  # batch 0, then all

@@ -162,12 +162,12 @@ def plugin_bets(
 _CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)
 
 
-def _chunks(sizes: np.ndarray) -> list[tuple[int, int]]:
-    """Consecutive hypothesis ranges [h0, h1) holding about _CHUNK elements each."""
+def _chunks(sizes: np.ndarray, per: int = _CHUNK) -> list[tuple[int, int]]:
+    """Consecutive hypothesis ranges [h0, h1) holding about ``per`` elements each."""
     cum = np.concatenate([[0], np.cumsum(sizes)])
     out, h0, h = [], 0, len(sizes)
     while h0 < h:
-        h1 = int(np.searchsorted(cum, cum[h0] + _CHUNK, side="right")) - 1
+        h1 = int(np.searchsorted(cum, cum[h0] + per, side="right")) - 1
         h1 = min(max(h1, h0 + 1), h)
         out.append((h0, h1))
         h0 = h1

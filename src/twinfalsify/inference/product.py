@@ -47,7 +47,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinfalsify.inference.betting import C_TRUNC, OrderedSide, _layout, _segment_cumsum
+from twinfalsify.inference.betting import (
+    C_TRUNC,
+    OrderedSide,
+    _chunks,
+    _layout,
+    _segment_cumsum,
+)
 
 GRID_CELLS = 64  # M bet cells: two observational capitals per cell
 SUB_STEPS = 4  # S: twin capital at M S + 1 points (the twin sample is the small one)
@@ -63,14 +69,7 @@ def grid(cells: int = GRID_CELLS, sub: int = 1) -> np.ndarray:
 
 def _row_chunks(offsets: np.ndarray, width: int) -> list[tuple[int, int]]:
     """Consecutive group ranges whose (values x width) arrays hold about _CHUNK elements."""
-    per = max(_CHUNK // max(width, 1), 1)
-    out, g0, n = [], 0, len(offsets) - 1
-    while g0 < n:
-        g1 = int(np.searchsorted(offsets, offsets[g0] + per, side="right")) - 1
-        g1 = min(max(g1, g0 + 1), n)
-        out.append((g0, g1))
-        g0 = g1
-    return out
+    return _chunks(np.diff(offsets), max(_CHUNK // max(width, 1), 1))
 
 
 def obs_cell_capital(x: np.ndarray, offsets: np.ndarray, m_grid: np.ndarray,
