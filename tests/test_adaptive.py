@@ -66,8 +66,11 @@ def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin, combi
         hours += summary["twin_hours_adaptive"]
     dec = pd.concat(decs).set_index("hyp_id").loc[study.hyps["hyp_id"]]
     assert len(dec) == len(study.hyps)  # every hypothesis decided by exactly one shard
-    np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)
-    np.testing.assert_allclose(dec["p_up"], ref.p_up, rtol=1e-12)
+    # product rule: its grid sums run over chunks of the groups present (a shard has fewer),
+    # so they round differently in the last bits; decisions and runs must agree exactly
+    rtol = 1e-12 if combine == "union" else 1e-9
+    np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=rtol)
+    np.testing.assert_allclose(dec["p_up"], ref.p_up, rtol=rtol)
     np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
     assert hours == ref.twin_hours_adaptive < ref.twin_hours_fixed
     # every simulated row equals the fixed scheme's row for the same (node, X_0)
