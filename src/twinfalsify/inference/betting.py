@@ -137,6 +137,22 @@ def _layout(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gid, t
 
 
+def running_moments(
+    x: np.ndarray, offsets: np.ndarray, layout: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predictable plug-in moments per group: (mu_{i-1}, sigma2_{i-1}) before each value, with
+    mu_t = (1/2 + sum_{j<=t} x_j) / (t + 1), sigma2_t = (1/4 + sum_{j<=t} (x_j - mu_j)^2) /
+    (t + 1) (WSR 2024, eq. 26-27), so mu_0 = 1/2 and sigma2_0 = 1/4 at every group start."""
+    gid, t = _layout(offsets) if layout is None else layout
+    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
+    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
+    starts = offsets[:-1][np.diff(offsets) > 0]
+    mu_prev, sig2_prev = np.empty_like(mu), np.empty_like(sig2)
+    mu_prev[1:], sig2_prev[1:] = mu[:-1], sig2[:-1]
+    mu_prev[starts], sig2_prev[starts] = 0.5, 0.25
+    return mu_prev, sig2_prev
+
+
 def plugin_bets(
     x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
     layout: tuple[np.ndarray, np.ndarray] | None = None,
@@ -149,11 +165,7 @@ def plugin_bets(
     """
     sizes = np.diff(offsets)
     gid, t = _layout(offsets) if layout is None else layout
-    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
-    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
-    prev = np.empty_like(sig2)  # sigma2_{i-1}, with sigma2_0 = 1/4 at every group start
-    prev[1:] = sig2[:-1]
-    prev[offsets[:-1][sizes > 0]] = 0.25
+    _, prev = running_moments(x, offsets, (gid, t))
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
     return np.sqrt(k[gid] / prev)

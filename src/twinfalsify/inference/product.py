@@ -47,13 +47,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinfalsify.inference.betting import (
-    C_TRUNC,
-    OrderedSide,
-    _chunks,
-    _layout,
-    _segment_cumsum,
-)
+from twinfalsify.inference.betting import C_TRUNC, OrderedSide, _chunks, running_moments
 
 GRID_CELLS = 64  # M bet cells: two observational capitals per cell
 SUB_STEPS = 4  # S: twin capital at M S + 1 points (the twin sample is the small one)
@@ -81,12 +75,7 @@ def obs_cell_capital(x: np.ndarray, offsets: np.ndarray, m_grid: np.ndarray,
     left, right = m_grid[:-1], m_grid[1:]
     n_groups = len(offsets) - 1
     g_left, g_right = np.zeros((n_groups, len(right))), np.zeros((n_groups, len(right)))
-    gid, t = _layout(offsets)
-    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
-    s2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
-    first = offsets[:-1][np.diff(offsets) > 0]
-    mu_prev, s2_prev = np.roll(mu, 1), np.roll(s2, 1)
-    mu_prev[first], s2_prev[first] = 0.5, 0.25
+    mu_prev, s2_prev = running_moments(x, offsets)
     cap = c / right
     for g0, g1 in _row_chunks(offsets, 2 * len(right)):
         sl = slice(offsets[g0], offsets[g1])

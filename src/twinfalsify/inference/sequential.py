@@ -69,6 +69,7 @@ from twinfalsify.inference.betting import (
     _segment_cumsum,
     log_capital,
     ordered_sides,
+    running_moments,
 )
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.product import (
@@ -97,13 +98,8 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     ``i`` is the 1-based position among the group's values (``index`` overrides it;
     positions only, never the group size). delta0: one per group.
     """
-    sizes = np.diff(offsets)
     gid, t = _layout(offsets)
-    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
-    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
-    prev = np.empty_like(sig2)
-    prev[1:] = sig2[:-1]
-    prev[offsets[:-1][sizes > 0]] = 0.25
+    _, prev = running_moments(x, offsets, (gid, t))
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
     return np.sqrt(k / prev)
@@ -367,15 +363,12 @@ class SequentialState:
         Futility at level a: no continuation up to the budget can reach log(1/a). The
         best reachable value is at most G(m) K_best(m) at any single m (the inf is below
         every point), with K_best(m) = max(max_{t<=tau} K_t(m), K_tau(m) (1 + min(lambda_bar,
-        c/(1-m)) m)^r) as in rule (b); the min over the grid points m_{k+1} (where the
-        cell value G^(k)(m_{k+1}) is exact) is used. Holm-aware: a = alpha/(F+1) exactly
-        (no bound to recompute, so no quantisation).
+        c/(1-m)) m)^r) as in rule (b), taken at every twin grid point u with G(u) bounded
+        above by its bet cell's left-end value (G decreases in m; exact at the right ends).
+        Holm-aware: a = alpha/(F+1) exactly (no bound to recompute, so no quantisation).
         """
-        k_lo, e_lo = twin_grid(tw, self.t_grid, self.c)
-        k_up, e_up = twin_grid(mirrored(tw), self.t_grid, self.c)
+        stat, (k_lo, e_lo), (k_up, e_up) = self._product(tw, act)
         g = self.g_cell[act]
-        stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], k_lo),
-                         product_stat(g[:, 1, 0], g[:, 1, 1], k_up)], axis=1)
         rej = stat >= np.log(1.0 / self.a_star[act])[:, None]
         # best reachable, bounded above at every twin grid point u: G(u) <= G^(k)(m_k) inside
         # bet cell k (G decreasing), exact G^(k)(m_{k+1}) at its right end
@@ -404,6 +397,17 @@ class SequentialState:
         cur_m = np.stack([ms[:, 0], 1.0 - ms[:, 1]], axis=1)
         g_at = np.take_along_axis(g_up_at, at[:, :, None], axis=2)[:, :, 0]
         return rej, fut, lvl, cur_m, lev - g_at
+
+    def _product(self, tw: OrderedSide, groups: np.ndarray) -> tuple:
+        """(stat (len(groups), 2), (K-max, K-end), (K+max, K+end)): the product rule's lower
+        bound of log inf_m G K for (H_lo, H_up) and the twin capitals on ``t_grid`` (H_up
+        through x -> 1 - x) of the twin side ``tw`` holding exactly ``groups``."""
+        lo = twin_grid(tw, self.t_grid, self.c)
+        up = twin_grid(mirrored(tw), self.t_grid, self.c)
+        g = self.g_cell[groups]
+        stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], lo[0]),
+                         product_stat(g[:, 1, 0], g[:, 1, 1], up[0])], axis=1)
+        return stat, lo, up
 
     def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
               lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -493,12 +497,8 @@ class SequentialState:
         ok = (self.obs.n > 0) & (nhat > 0)
         if self.combine == "product" and ok.any():
             g = np.flatnonzero(ok)
-            t = tw.take(g)
-            k_lo, _ = twin_grid(t, self.t_grid, self.c)
-            k_up, _ = twin_grid(mirrored(t), self.t_grid, self.c)
-            gc = self.g_cell[g]
-            p_lo[g] = np.minimum(1.0, np.exp(-product_stat(gc[:, 0, 0], gc[:, 0, 1], k_lo)))
-            p_up[g] = np.minimum(1.0, np.exp(-product_stat(gc[:, 1, 0], gc[:, 1, 1], k_up)))
+            p = np.minimum(1.0, np.exp(-self._product(tw.take(g), g)[0]))
+            p_lo[g], p_up[g] = p[:, 0], p[:, 1]
         elif ok.any():
             g = np.flatnonzero(ok)
             lo, up, t = self.lo.take(g), self.up.take(g), tw.take(g)
