@@ -45,6 +45,8 @@ def main(sm):
     summary = {
         "twin_hours_adaptive": hours_a,
         "twin_hours_fixed": hours_f,
+        # hours asked of the twin: what a twin without prefix reuse would simulate
+        "twin_hours_requested": sum(s["twin_hours_requested"] for s in summaries),
         "ratio": hours_a / max(hours_f, 1),
         "node_rows_simulated": len(rows),
         "by_hour_and_status": status_summary(rows) if len(rows) else {},

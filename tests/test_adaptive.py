@@ -8,12 +8,15 @@ import io
 import numpy as np
 import pandas as pd
 import pytest
+from fakes import FAULTY_TWIN
 from study_helpers import build_study
+from test_twin_runner import ENV
 
 from twinfalsify import bounds
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import run_adaptive_shard, shard_hypotheses
+from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
 
 
@@ -83,3 +86,25 @@ def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin, combi
     np.testing.assert_allclose(both["HR"], both["HR_fixed"], rtol=1e-12)
     # the biased twin is rejected somewhere, and stopping saved runs
     assert (ref.rejected_lo | ref.rejected_up).any()
+
+
+def test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes(study_and_twin,
+                                                                          tmp_path):
+    """A protocol twin gets each batch in one call, so an engine that keeps the dose prefixes
+    of one X_0 at a time (the Pulse worker) simulates exactly the node-runs the summary
+    reports. Simulating each node's runs in a call of its own (a fresh pool each time, the
+    X_0's sequences apart) made such an engine simulate shared prefixes again."""
+    study = study_and_twin[0]
+    log = tmp_path / "engine-hours.txt"
+    twin = ProtocolTwin("faulty", [*FAULTY_TWIN, f"--engine-hours={log}", "--batch=16"],
+                        workers=2, env=ENV, progress=False)
+    node_runs = requested = 0
+    for k in range(len(study.plan.shards)):
+        _, _, summary = run_adaptive_shard(
+            twin, study.plan, k, study.x0, study.actions, study.hyps, study.obs, study.states,
+            batch_size=100, log=io.StringIO())
+        node_runs += summary["twin_hours_adaptive"]
+        requested += summary["twin_hours_requested"]
+    engine = sum(int(v) for v in log.read_text().split())
+    assert requested > node_runs  # sibling sequences share prefixes: the test has teeth
+    assert engine == node_runs

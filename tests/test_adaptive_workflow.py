@@ -47,6 +47,8 @@ def test_adaptive_results_account_for_every_run(study):
     assert summary["node_rows_simulated"] == sum(len(s) for s in shards)
     assert summary["twin_hours_adaptive"] == summary["node_rows_simulated"]
     assert summary["twin_hours_adaptive"] < summary["twin_hours_fixed"]
+    # prefix reuse: a twin without it would simulate more hours than the node-runs
+    assert summary["twin_hours_requested"] >= summary["twin_hours_adaptive"]
     assert not (r / "twins" / "biased" / "shards").exists()  # no fixed-scheme runs
     assert (r / "twins" / "biased" / "tables" / "rejections.csv").exists()
 

@@ -42,6 +42,11 @@ Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 ``hang`` kill or stall the whole batch, ``garbage`` and ``malformed`` replace
 the whole batch answer, the other faults spoil only their own result.
 
+``--engine-hours FILE`` appends, per request, the hours a save/restore twin like the Pulse
+worker would simulate: it keeps the simulated dose prefixes of the current seed (X_0) only
+and starts afresh when the seed changes, so a client that does not send an X_0's sequences
+consecutively, in one pool, pays for shared prefixes again.
+
 Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
 times around the work), so tests can check parallelism from the twins' own
 timestamps; an answer given inside a simulate_batch of n runs adds ``batch=<n>``.
@@ -79,6 +84,22 @@ def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int) 
         hours.append({f: float(x0[f]) + (0.0 if f in DEMOGRAPHICS else shift)
                       for f in FEATURES})
     return hours
+
+
+_PREFIXES: dict[str, Any] = {"seed": None, "done": set()}
+
+
+def _log_engine_hours(path: Path, seed: int, doses: Sequence[Sequence[float]]) -> None:
+    """Append the hours beyond the longest prefix this process holds for ``seed``."""
+    if _PREFIXES["seed"] != seed:
+        _PREFIXES.update(seed=seed, done=set())
+    key = tuple(tuple(float(v) for v in d) for d in doses)
+    s = len(key)
+    while s > 0 and key[:s] not in _PREFIXES["done"]:
+        s -= 1
+    _PREFIXES["done"].update(key[:h] for h in range(s + 1, len(key) + 1))
+    with path.open("a") as fh:
+        fh.write(f"{len(key) - s}\n")
 
 
 def _matches(selector: str, seed: int) -> bool:
@@ -121,6 +142,8 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     t0 = time.time()
     x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
     hours = expected(x0, doses[:hours_asked], seed)
+    if args.engine_hours is not None:
+        _log_engine_hours(args.engine_hours, seed, doses[:hours_asked])
     answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
                               "message": "", "hours": hours, "clamped": {}}
     if mode == "crash_once":
@@ -180,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--max-hours", type=int, default=None)
     parser.add_argument("--log-requests", type=Path, default=None,
                         help="append one line per simulate request to this file")
+    parser.add_argument("--engine-hours", type=Path, default=None,
+                        help="append the hours a prefix-caching engine would simulate")
     parser.add_argument("--batch", type=int, default=None,
                         help="advertise capabilities.batch = N (runs per simulate_batch)")
     args = parser.parse_args(argv)

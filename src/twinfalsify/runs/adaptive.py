@@ -36,7 +36,7 @@ from twinfalsify.inference.sequential import (
     node_needs,
     twin_runs_indexed,
 )
-from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, plausible
+from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, simulate_jobs
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
@@ -119,6 +119,7 @@ def run_adaptive_shard(
     in_b0 = runs0.in_b0  # real X_0 in B_0: known before any simulation
     st.update(runs0, 0)
     sim_node_runs = 0
+    requested = 0  # hours asked of the twin: a twin without prefix reuse simulates these
     shard_nodes = {q[:k] for q in seqs for k in range(1, len(q) + 1)}
     fixed = len(shard_nodes) * budget
     depth_first = sorted(shard_nodes, key=len, reverse=True)
@@ -130,30 +131,32 @@ def run_adaptive_shard(
         j0, j1 = st.revealed(b - 1), st.revealed(b)
         # runs needed per node this batch: X_0 in B_0 of a running hypothesis using the node
         need = node_needs(paths, np.where(act, j1, 0), in_b0[idx], len(index))[:, j0:j1]
+        # deepest node first, each simulation filling every node on its path; the whole
+        # batch in one call, so a protocol twin can branch shared prefixes (Pulse)
         covered = np.zeros_like(need)
+        jobs = []
+        for node in depth_first:
+            rows = np.flatnonzero(need[index[node]] & ~covered[index[node]])
+            if rows.size:
+                jobs.append((node, rows))
+                for s in range(1, len(node) + 1):
+                    covered[index[node[:s]], rows] = True
         done_runs = 0
-        for leaf in depth_first:
-            rows = np.flatnonzero(need[index[leaf]] & ~covered[index[leaf]])
-            if rows.size == 0:
-                continue
-            doses = np.broadcast_to(actions.doses(np.asarray(leaf)), (rows.size, len(leaf), 2))
-            res = twin.simulate(x0.iloc[j0 + rows].reset_index(drop=True), doses.copy(),
-                                seeds[j0 + rows])
-            if res.features.shape != (rows.size, len(leaf), len(FEATURES)):
-                raise ContractError(
-                    f"twin {twin.name}: simulate returned features of shape "
-                    f"{res.features.shape}, expected {(rows.size, len(leaf), len(FEATURES))}")
-            feats, status, message = plausible(res)  # implausible values fail, as in run_shard
+        filled = np.zeros_like(need)
+        results = simulate_jobs(twin, [(node, j0 + rows) for node, rows in jobs], x0, seeds,
+                                actions, None)
+        for (leaf, rows), (feats, status, message, clamped) in zip(jobs, results, strict=True):
+            requested += rows.size * len(leaf)
             for s in range(1, len(leaf) + 1):
                 node = leaf[:s]
-                new = ~covered[index[node]][rows]  # a prefix may hold some rows already
+                new = ~filled[index[node]][rows]  # a prefix may hold some rows already
                 if not new.any():
                     continue
-                covered[index[node], rows[new]] = True
+                filled[index[node], rows[new]] = True
                 vals = feats[new, s - 1, :]
                 nodes.values[index[node], j0 + rows[new]] = vals
                 frames.append(_rows(node_name(node), s, vals, status[new], message[new],
-                                    np.asarray(res.clamped)[new], stays[j0 + rows[new]]))
+                                    clamped[new], stays[j0 + rows[new]]))
                 done_runs += int(new.sum())
         sim_node_runs += done_runs
         st.update(runs_now(), b)
@@ -181,6 +184,7 @@ def run_adaptive_shard(
         "parameter_sets": len(idx), "node_rows": len(rows),
         "twin_hours_adaptive": int(per_node.sum()),
         "twin_hours_fixed": fixed,
+        "twin_hours_requested": requested,
         "runs_saved": fixed - len(rows),
         "decisions": {
             side: pd.Series(dec[f"decision_{side}"]).value_counts().to_dict()

@@ -134,54 +134,59 @@ def plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return feats, status, message
 
 
-def _simulate_leaves(
-    twin: Twin, leaves: list[str], x0: pd.DataFrame, seeds: np.ndarray, actions: ActionBins,
-    log,
+def simulate_jobs(
+    twin: Twin, jobs: list[tuple[tuple[int, ...], np.ndarray]], x0: pd.DataFrame,
+    seeds: np.ndarray, actions: ActionBins, log,
 ) -> list:
-    """One SimResult-like (features, status, message, clamped) per leaf, all m runs each.
+    """One SimResult-like (features, status, message, clamped) per job (sequence, rows):
+    the rows (positions in x0 / seeds) simulated along the action sequence, implausible
+    values failed (``plausible``).
 
-    A ProtocolTwin gets every leaf in one call (shorter leaves padded with
-    all-NaN hours, which the runner reads as a shorter run): one worker pool
-    for the shard, and the runner's seed-grouped, prefix-ordered schedule lets
-    a save/restore twin branch shared prefixes. In-process twins get one
-    vectorised call per leaf.
+    A ProtocolTwin gets every job in one call (shorter sequences padded with all-NaN
+    hours, which the runner reads as a shorter run): one worker pool, and the runner's
+    seed-grouped, prefix-ordered schedule lets a save/restore twin (Pulse) branch shared
+    prefixes instead of simulating them again for every sequence. In-process twins get one
+    vectorised call per job.
     """
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
-    m = len(x0)
-    seqs = [parse_node(leaf) for leaf in leaves]
-    if isinstance(twin, ProtocolTwin) and seqs:
-        t = max(map(len, seqs))
-        doses = np.full((len(seqs) * m, t, 2), np.nan)
-        for j, seq in enumerate(seqs):
-            doses[j * m : (j + 1) * m, : len(seq)] = actions.doses(np.asarray(seq))
-        res = twin.simulate(
-            pd.concat([x0] * len(seqs), ignore_index=True), doses, np.tile(seeds, len(seqs))
-        )
-        if res.features.shape[:2] != (len(seqs) * m, t):
+    jobs = [(seq, np.asarray(rows, dtype=np.int64)) for seq, rows in jobs if len(rows)]
+    if isinstance(twin, ProtocolTwin) and jobs:
+        t = max(len(seq) for seq, _ in jobs)
+        n = sum(rows.size for _, rows in jobs)
+        doses = np.full((n, t, 2), np.nan)
+        cuts = np.cumsum([0] + [rows.size for _, rows in jobs])
+        for (seq, _), a, b in zip(jobs, cuts[:-1], cuts[1:], strict=True):
+            doses[a:b, : len(seq)] = actions.doses(np.asarray(seq))
+        every = np.concatenate([rows for _, rows in jobs])
+        res = twin.simulate(x0.iloc[every].reset_index(drop=True), doses, seeds[every])
+        if res.features.shape[:2] != (n, t):
             raise ContractError(
-                f"twin {twin.name}: simulate returned features of shape {res.features.shape}"
+                f"twin {twin.name}: simulate returned features of shape {res.features.shape}, "
+                f"expected {(n, t, len(FEATURES))}"
             )
         feats, status, message = plausible(res)
-        out = []
-        for j, seq in enumerate(seqs):
-            rows = slice(j * m, (j + 1) * m)
-            out.append((feats[rows, : len(seq)], status[rows], message[rows], res.clamped[rows]))
-        return out
+        clamped = np.asarray(res.clamped, dtype=object)
+        return [(feats[a:b, : len(seq)], status[a:b], message[a:b], clamped[a:b])
+                for (seq, _), a, b in zip(jobs, cuts[:-1], cuts[1:], strict=True)]
     out = []
     start = time.monotonic()
-    for i, seq in enumerate(seqs, 1):
-        doses = np.broadcast_to(actions.doses(np.asarray(seq)), (m, len(seq), 2)).copy()
-        res = twin.simulate(x0, doses, seeds)
+    done = 0
+    for i, (seq, rows) in enumerate(jobs, 1):
+        doses = np.broadcast_to(actions.doses(np.asarray(seq)), (rows.size, len(seq), 2)).copy()
+        res = twin.simulate(x0.iloc[rows].reset_index(drop=True), doses, seeds[rows])
+        if res.features.shape != (rows.size, len(seq), len(FEATURES)):
+            raise ContractError(
+                f"twin {twin.name}: simulate returned features of shape {res.features.shape}, "
+                f"expected {(rows.size, len(seq), len(FEATURES))}"
+            )
         feats, status, message = plausible(res)
-        out.append((feats, status, message, res.clamped))
-        rate = i * m / max(time.monotonic() - start, 1e-9)
-        print(
-            f"[twin {twin.name}] leaf {i}/{len(seqs)} ({leaves[i - 1]}): {m} runs, "
-            f"{rate:,.0f} runs/s",
-            file=log,
-            flush=True,
-        )
+        out.append((feats, status, message, np.asarray(res.clamped, dtype=object)))
+        done += rows.size
+        if log is not None:
+            rate = done / max(time.monotonic() - start, 1e-9)
+            print(f"[twin {twin.name}] sequence {i}/{len(jobs)} ({node_name(seq)}): "
+                  f"{rows.size} runs, {rate:,.0f} runs/s", file=log, flush=True)
     return out
 
 
@@ -208,16 +213,10 @@ def run_shard(
     m = len(x0)
     frames: dict[str, pd.DataFrame] = {}
     leaves = plan.shards[shard]  # may be empty: fewer first actions than shards
-    for leaf, (feats, status, message, clamped) in zip(
-        leaves, _simulate_leaves(twin, leaves, x0, seeds, actions, log), strict=True
+    jobs = [(parse_node(leaf), np.arange(m)) for leaf in leaves]
+    for (seq, _), (feats, status, message, clamped) in zip(
+        jobs, simulate_jobs(twin, jobs, x0, seeds, actions, log), strict=True
     ):
-        seq = parse_node(leaf)
-        if feats.shape != (m, len(seq), len(FEATURES)):
-            raise ContractError(
-                f"twin {twin.name}: simulate returned features of shape {feats.shape}, "
-                f"expected {(m, len(seq), len(FEATURES))}"
-            )
-        status = np.asarray(status, dtype=object)
         for s in range(1, len(seq) + 1):
             name = node_name(seq[:s])
             vals = feats[:, s - 1, :]
