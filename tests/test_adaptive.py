@@ -18,6 +18,7 @@ from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import run_adaptive_shard, shard_hypotheses
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
+from twinfalsify.schema import FEATURES
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +109,24 @@ def test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes(study_a
     engine = sum(int(v) for v in log.read_text().split())
     assert requested > node_runs  # sibling sequences share prefixes: the test has teeth
     assert engine == node_runs
+
+
+def test_simulate_jobs_keeps_one_result_per_job_in_order(study_and_twin):
+    """Jobs without rows get empty results in their place; every other job's values are its
+    own sequence's, for the rows asked, in-process and through the protocol alike."""
+    study, twin, _ = study_and_twin
+    seeds = study.plan.run_seeds()
+    seqs = [tp.parse_node(leaf) for leaf in study.plan.shards[0]][:2]
+    jobs = [(seqs[0], np.array([3, 1, 7])), (seqs[1], np.array([], int)), (seqs[1], np.arange(4))]
+    served = ProtocolTwin("faulty", FAULTY_TWIN, env=ENV, progress=False)
+    for tw in (twin, served):
+        got = tp.simulate_jobs(tw, jobs, study.x0, seeds, study.actions, io.StringIO())
+        assert [g[0].shape for g in got] == [(3, len(seqs[0]), len(FEATURES)),
+                                             (0, len(seqs[1]), len(FEATURES)),
+                                             (4, len(seqs[1]), len(FEATURES))]
+        for (seq, rows), (feats, status, _, _) in zip(jobs, got, strict=True):
+            doses = np.broadcast_to(study.actions.doses(np.asarray(seq)), (rows.size, len(seq), 2))
+            want = tw.simulate(study.x0.iloc[rows].reset_index(drop=True), doses.copy(),
+                               seeds[rows])
+            np.testing.assert_array_equal(feats, want.features)
+            assert (status == "ok").all()

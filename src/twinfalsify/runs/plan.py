@@ -150,7 +150,14 @@ def simulate_jobs(
     """
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
-    jobs = [(seq, np.asarray(rows, dtype=np.int64)) for seq, rows in jobs if len(rows)]
+    jobs = [(seq, np.asarray(rows, dtype=np.int64)) for seq, rows in jobs]
+    if not all(rows.size for _, rows in jobs):  # a job without rows: an empty result
+        full = [k for k, (_, rows) in enumerate(jobs) if rows.size]
+        got = dict(zip(full, simulate_jobs(twin, [jobs[k] for k in full], x0, seeds, actions,
+                                           log), strict=True))
+        none = np.empty(0, dtype=object)
+        return [got.get(k, (np.empty((0, len(seq), len(FEATURES))), none, none, none))
+                for k, (seq, _) in enumerate(jobs)]
     if isinstance(twin, ProtocolTwin) and jobs:
         t = max(len(seq) for seq, _ in jobs)
         n = sum(rows.size for _, rows in jobs)
