@@ -58,15 +58,21 @@ def _shards(work: Path, r: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt(
     work: Path, config: Path, sig: signal.Signals, log: Path
 ) -> dict[str, tuple[int, int]]:
     """Start the study, send ``sig`` to its process group once 1..3 shards exist.
 
-    A SIGINT that reaches Snakemake while its main thread is inside an asyncio section (job
-    postprocessing, which is exactly when a shard has just finished) is swallowed by
-    asyncio's own SIGINT handler and the study runs on. A user then presses Ctrl-C again;
-    so does this test: SIGINT is repeated until Snakemake logs that it is terminating.
+    Two ways a SIGINT can miss (the first seen in CI, reproduced with ``trap '' INT``): a
+    process started as a background job of a non-interactive shell inherits SIGINT ignored,
+    so Snakemake gets a default disposition here (``_default_sigint``); and a SIGINT that
+    reaches Snakemake while its main thread waits in ``asyncio.Runner.run`` (job
+    postprocessing) on a task already done is dropped by asyncio's handler. A user then
+    presses Ctrl-C again; so does this test, until Snakemake logs that it is terminating.
     """
     r = results_dir(work, config)
     with log.open("wb") as sink:
@@ -76,6 +82,9 @@ def _interrupt(
             stderr=subprocess.STDOUT,
             env=run_env(),
             start_new_session=True,  # its own process group: the signal reaches the jobs too
+            # a background job of a non-interactive shell (a CI runner) inherits SIGINT
+            # ignored, and Python keeps it ignored: give Snakemake a terminal's Ctrl-C
+            preexec_fn=_default_sigint,
         )
     try:
         deadline = time.monotonic() + 300
