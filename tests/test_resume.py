@@ -94,10 +94,10 @@ def _interrupt(
             time.sleep(0.05)
         os.killpg(proc.pid, sig)
         while sig == signal.SIGINT and proc.poll() is None:
+            time.sleep(0.2)
             if b"Terminating processes on user request" in log.read_bytes():
                 break
-            time.sleep(0.2)
-            if proc.poll() is None and b"Terminating" not in log.read_bytes():
+            if proc.poll() is None:
                 os.killpg(proc.pid, sig)
         proc.wait(timeout=120)
     finally:

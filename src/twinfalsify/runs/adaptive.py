@@ -134,25 +134,24 @@ def run_adaptive_shard(
         # deepest node first, each simulation filling every node on its path; the whole
         # batch in one call, so a protocol twin can branch shared prefixes (Pulse)
         covered = np.zeros_like(need)
-        jobs = []
+        jobs, fresh = [], []  # fresh[k][s-1]: rows of job k that fill node a_1:s first
         for node in depth_first:
             rows = np.flatnonzero(need[index[node]] & ~covered[index[node]])
             if rows.size:
                 jobs.append((node, rows))
+                fresh.append([~covered[index[node[:s]], rows] for s in range(1, len(node) + 1)])
                 for s in range(1, len(node) + 1):
                     covered[index[node[:s]], rows] = True
         done_runs = 0
-        filled = np.zeros_like(need)
         results = simulate_jobs(twin, [(node, j0 + rows) for node, rows in jobs], x0, seeds,
                                 actions, None)
-        for (leaf, rows), (feats, status, message, clamped) in zip(jobs, results, strict=True):
+        for (leaf, rows), new_at, (feats, status, message, clamped) in zip(
+                jobs, fresh, results, strict=True):
             requested += rows.size * len(leaf)
-            for s in range(1, len(leaf) + 1):
-                node = leaf[:s]
-                new = ~filled[index[node]][rows]  # a prefix may hold some rows already
+            for s, new in enumerate(new_at, start=1):
                 if not new.any():
                     continue
-                filled[index[node], rows[new]] = True
+                node = leaf[:s]
                 vals = feats[new, s - 1, :]
                 nodes.values[index[node], j0 + rows[new]] = vals
                 frames.append(_rows(node_name(node), s, vals, status[new], message[new],
