@@ -100,6 +100,8 @@ def curtailed(hyps, st, nodes, bs, alpha, seed, shard_of, curtail, fixed_sets,
                           seed=seed, shards=shard_of, curtail=eps, combine=combine)
         ad = {(i, "lo") for i in ids[o.rejected_lo]} | {(i, "up") for i in ids[o.rejected_up]}
         out[f"ratio_curtail_{eps:g}"] = round(o.twin_hours_adaptive / o.twin_hours_fixed, 4)
+        out[f"ratio_untruncated_curtail_{eps:g}"] = round(
+            o.twin_hours_untruncated / o.twin_hours_fixed, 4)
         out[f"kept_betting_curtail_{eps:g}"] = len(ad & fixed_sets.get("betting", set()))
     return out
 
@@ -144,6 +146,9 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
             # levers, measured one at a time off the full procedure:
             # every revealed X_0 simulated per node (no B_0 skipping)
             "ratio_all_x0": round(out.twin_hours_all_x0 / max(out.twin_hours_fixed, 1), 4),
+            # whole paths simulated (no depth truncation)
+            "ratio_untruncated": round(out.twin_hours_untruncated
+                                       / max(out.twin_hours_fixed, 1), 4),
             "rejected_adaptive": len(ad),
             **{f"rejected_fixed_{k}": int(v) for k, v in fixed.items()},
             **{f"kept_of_{k}": len(ad & s) for k, s in fixed_sets.items()},

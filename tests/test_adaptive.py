@@ -13,6 +13,7 @@ from study_helpers import build_study
 from test_twin_runner import ENV
 
 from twinfalsify import bounds
+from twinfalsify.design import WHOLE_SPACE
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import run_adaptive_shard, shard_hypotheses
@@ -130,3 +131,49 @@ def test_simulate_jobs_keeps_one_result_per_job_in_order(study_and_twin):
                                seeds[rows])
             np.testing.assert_array_equal(feats, want.features)
             assert (status == "ok").all()
+
+
+def test_depth_truncation_drops_only_hours_no_hypothesis_can_use(study_and_twin):
+    """Brute force over hypotheses, runs and hours: node a_1:s of run j is kept iff some
+    hypothesis using it has j revealed, X_0 in B_0 and every earlier hour of its path in
+    B_s' (or failed: it cannot be shown to have left); and hours are saved."""
+    study, twin, runs = study_and_twin
+    nodes = tp.load_nodes(runs, study.plan, study.x0)
+    hyps, states = study.hyps, study.states
+    # BY: no Holm-aware futility, so more hypotheses run long enough to leave B-sets
+    ref = adaptive_test(hyps, study.obs, nodes, states, batch_size=40, correction="by")
+    assert ref.twin_hours_adaptive < ref.twin_hours_untruncated  # the test has teeth
+    want = np.zeros(nodes.values.shape[:2], bool)
+    base0 = states.base_codes(nodes.x0)
+    for h, row in enumerate(hyps.itertuples()):
+        k = FEATURES.index(row.outcome)
+        seq = tuple(int(a) for a in row.actions)
+        code0 = base0 + states.above(row.outcome, nodes.x0[:, k], 0)
+        for j in range(ref.runs_per_hypothesis[h]):
+            if row.bins[0] not in (WHOLE_SPACE, code0[j]):
+                continue
+            for s in range(1, len(seq) + 1):
+                want[nodes.index[seq[:s]], j] = True
+                v = nodes.values[nodes.index[seq[:s]], j, k]
+                code = base0[j] + states.above(row.outcome, v, s)
+                if not np.isnan(v) and row.bins[s] not in (WHOLE_SPACE, code):
+                    break  # left B_s: later hours cannot matter to h
+    assert ref.twin_hours_adaptive == want.sum()
+    np.testing.assert_array_equal(ref.runs_used, want.sum(axis=1))
+    # the shards of an in-process twin keep exactly these node rows, and decide the same
+    rows, decs = [], []
+    for k in range(len(study.plan.shards)):
+        r, dec, summary = run_adaptive_shard(
+            twin, study.plan, k, study.x0, study.actions, hyps, study.obs, states,
+            batch_size=40, correction="by", log=io.StringIO())
+        assert summary["depth_truncation"] and summary["twin_hours_adaptive"] == len(r)
+        rows.append(r)
+        decs.append(dec)
+    sim = pd.concat(rows, ignore_index=True)
+    got = np.zeros_like(want)
+    got[sim["node"].map(lambda n: nodes.index[tp.parse_node(n)]),
+        sim["init_stay_id"].map({s: j for j, s in enumerate(study.plan.x0_stay_ids)})] = True
+    np.testing.assert_array_equal(got, want)
+    dec = pd.concat(decs).set_index("hyp_id").loc[hyps["hyp_id"]]
+    np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
+    np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)

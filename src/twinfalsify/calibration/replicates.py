@@ -32,11 +32,7 @@ from twinfalsify.inference.sequential import (
     UNDECIDED,
     AdaptiveOutcome,
     SequentialState,
-    correct_by_family,
-    hypothesis_paths,
-    node_needs,
-    node_runs,
-    paper_hours,
+    outcome,
     run_to_stop,
     twin_runs_indexed,
 )
@@ -306,17 +302,7 @@ def run_adaptive(
     st.l_hol, st.u_hol = base.l_hol.copy(), base.u_hol.copy()
     runs = twin_runs_indexed(rep.hyps, nodes, rep.states)
     run_to_stop(st, runs)
-    p_lo, p_up, nhat = st.p_values(runs)
-    per_hyp = st.runs_used()
-    paths = hypothesis_paths(rep.hyps, nodes.index)
-    used = node_needs(paths, per_hyp, runs.in_b0, len(nodes.index)).sum(axis=1)
-    rej_lo, rej_up = correct_by_family(rep.hyps, p_lo, p_up, cfg.alpha, cfg.correction)
-    return AdaptiveOutcome(
-        p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
-        int(used.sum()), int(len(nodes.index) * st.budget),
-        int(node_runs(paths, per_hyp, len(nodes.index)).sum()),
-        paper_hours(rep.hyps, st.budget),
-    )  # fmt: skip
+    return outcome(rep.hyps, nodes, rep.states, st, runs, cfg.alpha, cfg.correction)
 
 
 def _fixed_rejections(res: pd.DataFrame, method: str, hyp_ids: np.ndarray):

@@ -115,24 +115,13 @@ class TwinRuns:
     failed: np.ndarray  # (H, m) run failed on the path (and X_0 in B_0)
 
 
-def twin_runs_indexed(
-    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
-) -> TwinRuns:
-    """``bounds.twin_side`` plus each entering run's position (same entry rule).
-
-    Run i of a_1:t enters iff X_0 in B_0, Xtwin_s in B_s (s = 1..t) and no node of its
-    path failed (NaN). Agreement with ``bounds.twin_side`` is tested.
-    """
-    h_total = len(hyps)
-    m = nodes.x0.shape[0]
-    t_h = hyps["t"].to_numpy(np.int64)
-    b_pad = padded(hyps, "bins", t_max + 1)
+def _path_boxes(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX):
+    """Per outcome: (hypothesis indices, values (h, T, m) along each path (NaN off the path
+    or failed), on_path (h, T), ok_s (h, T, m) the value at hour s lies in B_s (True off the
+    path), in_b0 (h, m)). The one place the entry rule reads B-sets."""
     paths = hypothesis_paths(hyps, nodes.index, t_max)
+    b_pad = padded(hyps, "bins", t_max + 1)
     base0 = states.base_codes(nodes.x0)
-    in_b0 = np.zeros((h_total, m), dtype=bool)
-    failed_all = np.zeros((h_total, m), dtype=bool)
-    enter_all = np.zeros((h_total, m), dtype=bool)
-    last_all = np.zeros((h_total, m))
     for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
         k = FEATURES.index(outcome)
         code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
@@ -140,22 +129,59 @@ def twin_runs_indexed(
         p = paths[idx]
         vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
         on_path = p >= 0
-        failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)
         codes = base0[None, None, :] + states.above(
             outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
         )
         bs = b_pad[idx][:, 1:, None]
         ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
         b0 = b_pad[idx][:, 0][:, None]
-        ib0 = (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
+        yield idx, vals, on_path, ok_s, (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
+
+
+def twin_runs_indexed(
+    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+) -> TwinRuns:
+    """``bounds.twin_side`` plus each entering run's position (same entry rule).
+
+    Run i of a_1:t enters iff X_0 in B_0, Xtwin_s in B_s (s = 1..t) and no node of its
+    path failed (NaN). A failed run counts as failed only if its completed hours had not
+    already left B_1:s (it could not have entered whatever it did next), as in
+    ``bounds.twin_side``; so hours a truncating twin never simulated are not failures.
+    Agreement with ``bounds.twin_side`` is tested.
+    """
+    h_total = len(hyps)
+    m = nodes.x0.shape[0]
+    t_h = hyps["t"].to_numpy(np.int64)
+    in_b0 = np.zeros((h_total, m), dtype=bool)
+    failed_all = np.zeros((h_total, m), dtype=bool)
+    enter_all = np.zeros((h_total, m), dtype=bool)
+    last_all = np.zeros((h_total, m))
+    for idx, vals, on_path, ok_s, ib0 in _path_boxes(hyps, nodes, states, t_max):
+        failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)
+        left_b = (on_path[..., None] & ~np.isnan(vals) & ~ok_s).any(axis=1)
         in_b0[idx] = ib0
-        failed_all[idx] = failed & ib0
+        failed_all[idx] = failed & ib0 & ~left_b
         enter_all[idx] = ib0 & ok_s.all(axis=1) & ~failed
         last_all[idx] = vals[np.arange(len(idx)), t_h[idx] - 1, :]
     hh, ii = np.nonzero(enter_all)  # row-major: X_0 order within each hypothesis
     sizes = np.bincount(hh, minlength=h_total)
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     return TwinRuns(Ragged(last_all[hh, ii], offsets), ii.astype(np.int64), in_b0, failed_all)
+
+
+def reachable(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+              ) -> np.ndarray:
+    """(H, T, m) bool: run j can still enter hypothesis h when hour s of its path begins:
+    X_0 in B_0 and every completed hour s' < s in B_s' (a failed, NaN hour counts as
+    inside: it cannot be shown to have left). Hour s of run j is needed for h only then
+    (*depth truncation*: a run that left B_s' never enters h, whatever it does next)."""
+    out = np.zeros((len(hyps), t_max, nodes.x0.shape[0]), dtype=bool)
+    for idx, vals, _, ok_s, ib0 in _path_boxes(hyps, nodes, states, t_max):
+        inside = ok_s | np.isnan(vals)
+        before = np.concatenate([np.ones_like(inside[:, :1]),
+                                 np.logical_and.accumulate(inside[:, :-1], axis=1)], axis=1)
+        out[idx] = ib0[:, None, :] & before
+    return out
 
 
 def hypothesis_paths(hyps: pd.DataFrame, index: dict, t_max: int = T_MAX) -> np.ndarray:
@@ -200,8 +226,8 @@ class SequentialState:
     # (H,) labels: primary-futile sides are counted within (kind, label), e.g. the shard that
     # runs the hypothesis (shards share nothing); None: within the kind (the whole family)
     holm_scope: np.ndarray | None = None
-    # opt-in curtailment (doc (d)): stop a side when the estimated probability that the
-    # full budget rejects it at its Holm-aware level is below this epsilon (0: off)
+    # opt-in curtailment (doc (d)): stop a side when the predictive probability that the
+    # full budget rejects it early (at a*) is below this epsilon (0: off)
     curtail: float = 0.0
     # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in)
     combine: str = "union"
@@ -349,9 +375,9 @@ class SequentialState:
             fut_lo, fut_up = fut_lo | hol_lo, fut_up | hol_up
             lvl_lo = np.where(hol_lo, a_lo, lvl_lo)
             lvl_up = np.where(hol_up, a_up, lvl_up)
-        # curtailment (d): at L, U of the side's Holm-aware level alpha / 2^q
-        cur_m = np.stack([self.l_hol[act], self.u_hol[act]], axis=1)
-        cur_lev = np.log(2.0 * 2.0 ** self.q_hol[act] / self.alpha)
+        # curtailment (d) aims at early rejection: at L*, U* against log(2/a*)
+        cur_m = np.stack([self.l_star[act], self.u_star[act]], axis=1)
+        cur_lev = np.broadcast_to(lev_star[:, None], cur_m.shape)
         return (np.stack([rej_lo, rej_up], axis=1), np.stack([fut_lo, fut_up], axis=1),
                 np.stack([lvl_lo, lvl_up], axis=1), cur_m, cur_lev)
 
@@ -385,18 +411,17 @@ class SequentialState:
         at, top = best.argmin(axis=2), best.min(axis=2)
         fut = top < np.log(1.0 / self.alpha)
         lvl = np.where(fut, self.alpha, 0.0)
-        lev = np.full(top.shape, np.log(1.0 / self.alpha))
         if self.holm_aware:
             f = np.broadcast_to(self.primary_futile()[act][:, None], top.shape)
             hol = (f > 0) & ~fut & (top < np.log((f + 1.0) / self.alpha))
             fut = fut | hol
             lvl = np.where(hol, self.alpha / (f + 1.0), lvl)
-            lev = np.log((f + 1.0) / self.alpha)
         # curtailment at the minimising point, in the original coordinates (H_up mirrored)
         ms = m[at]
         cur_m = np.stack([ms[:, 0], 1.0 - ms[:, 1]], axis=1)
         g_at = np.take_along_axis(g_up_at, at[:, :, None], axis=2)[:, :, 0]
-        return rej, fut, lvl, cur_m, lev - g_at
+        # curtailment (d) aims at early rejection: log(1/a*)
+        return rej, fut, lvl, cur_m, np.log(1.0 / self.a_star[act])[:, None] - g_at
 
     def _product(self, tw: OrderedSide, groups: np.ndarray) -> tuple:
         """(stat (len(groups), 2), (K-max, K-end), (K+max, K+end)): the product rule's lower
@@ -426,18 +451,28 @@ class SequentialState:
     def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
                    j: int, lam_bar: np.ndarray, at_m: np.ndarray, at_lev: np.ndarray
                    ) -> np.ndarray:
-        """(len(act), 2) bool: P(the full budget rejects at the side's Holm-aware level) <
-        ``curtail``, under a normal approximation of the remaining log-capital increments.
+        """(len(act), 2) bool: P(the full budget rejects at the curtailment level) <
+        ``curtail``, a predictive probability under a normal approximation.
 
-        At the point ``at_m`` (union rule: L for H_lo, U for H_up, at the side's level
-        a = alpha / 2^q; product rule: the point minimising the best reachable G K) against
-        the log-level ``at_lev`` (union: log(2/a); product: log(1/a) - log G(m)), each
-        remaining run with X_0 in B_0 enters with the observed rate pi = nhat / (revealed
-        runs with X_0 in B_0) and then adds g(x) = log(1 - min(lam, c/(1-m)) (x - m)), x drawn
-        from the values seen so far, lam = the largest future bet (``future_bet_bound``); so
-        log K_budget ~ N(log K_tau + r mu, r v) with mu, v the mean and variance of the
-        per-run increment (0 w.p. 1 - pi). A heuristic: it never affects validity (stopping
-        only forgoes power), and its power cost is measured (docs/sequential.md).
+        It aims at early rejection: at the point ``at_m`` (union: L*, U*, the observational
+        bounds at a*; product: the point minimising the best reachable G K) against the
+        log-level ``at_lev`` (union: log(2/a*); product: log(1/a*) - log G(m)). Aiming at
+        the side's Holm-aware level instead (alpha / 2^q, far more lenient when few sides
+        are futile) kept grey-zone sides running to the budget: more hours for the same
+        rejections (docs/sequential.md). Each remaining run with X_0 in B_0 enters with the
+        observed rate pi = nhat / (revealed runs with X_0 in B_0) and then adds
+        g(x) = log(1 - min(lam, c/(1-m)) (x - m)), x drawn from the values seen so far,
+        lam = the largest future bet (``future_bet_bound``). With mu, v the mean and
+        variance of the per-run increment (0 w.p. 1 - pi) over the n = seen_b0 runs so far,
+
+            log K_budget ~ N(log K_tau + r mu, r v (1 + r / n)):
+
+        the term r^2 v / n is the uncertainty of mu itself, i.e. predictive rather than
+        conditional power (Spiegelhalter, Freedman & Blackburn 1986, Control. Clin. Trials
+        7:8-17). Without it the stop is overconfident early on (r >> n) and forgoes many
+        rejections with small batches (``test_curtailment_forgoes_few_rejections_the_full_
+        budget_makes``). A heuristic: it never affects validity (stopping only forgoes
+        power), and its power cost is measured (docs/sequential.md).
         """
         gid = np.repeat(np.arange(len(act)), tw.sizes)
         seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)
@@ -454,7 +489,9 @@ class SequentialState:
             g2 = np.bincount(gid, g * g, len(act)) / n_ok
             mu, var = pi * g1, np.maximum(pi * g2 - (pi * g1) ** 2, 1e-12)
             now = log_capital(tw, m, sign, False, self.c)
-            z = (now + r * mu - lev) / np.sqrt(r * var + 1e-12)
+            # predictive: mu is itself estimated from seen_b0 runs (variance var / seen_b0)
+            pred = r * var * (1.0 + r / np.maximum(seen_b0, 1))
+            z = (now + r * mu - lev) / np.sqrt(pred + 1e-12)
             prob = 0.5 * erfc(-z / np.sqrt(2.0))
             out[:, col] = (nhat >= 2) & (r > 0) & (prob < self.curtail)
         return out
@@ -556,6 +593,8 @@ class AdaptiveOutcome:
     twin_hours_fixed: int  # every node for the whole budget (prefix reuse)
     twin_hours_all_x0: int  # adaptive stopping, but every revealed X_0 simulated per node
     twin_hours_paper: int  # every sequence from scratch for the whole budget
+    # as twin_hours_adaptive, without depth truncation (a twin that simulates whole paths)
+    twin_hours_untruncated: int
 
 
 def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -566,21 +605,24 @@ def node_runs(paths: np.ndarray, per_hyp: np.ndarray, n_nodes: int) -> np.ndarra
     return out
 
 
-def node_needs(paths: np.ndarray, per_hyp: np.ndarray, in_b0: np.ndarray, n_nodes: int
-               ) -> np.ndarray:
+def node_needs(paths: np.ndarray, per_hyp: np.ndarray, in_b0: np.ndarray, n_nodes: int,
+               reach: np.ndarray | None = None) -> np.ndarray:
     """(n_nodes, m) bool: run j of node v is needed iff some hypothesis whose path uses v has
     j revealed (j < per_hyp[h]) and its real X_0 in B_0 (only those runs can ever enter).
 
     Skipping the other runs changes no decision: a run whose X_0 is outside B_0 contributes
     the factor 1 to that hypothesis whatever the twin does. The X_0 order is untouched, so
-    each hypothesis' runs stay a uniformly random order of the X_0 in D.
+    each hypothesis' runs stay a uniformly random order of the X_0 in D. With ``reach``
+    ((H, T, m), :func:`reachable`) node a_1:s of run j is needed for h only while the run
+    can still enter h (depth truncation; changes no decision either).
     """
     m = in_b0.shape[1]
     need = np.zeros((n_nodes, m), dtype=bool)
     revealed = in_b0 & (np.arange(m)[None, :] < np.asarray(per_hyp)[:, None])
     for s in range(paths.shape[1]):
         on = paths[:, s] >= 0
-        np.logical_or.at(need, paths[on, s], revealed[on])
+        rows = revealed[on] if reach is None else revealed[on] & reach[on, s]
+        np.logical_or.at(need, paths[on, s], rows)
     return need
 
 
@@ -648,16 +690,24 @@ def adaptive_test(
                          holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail,
                          combine=combine)
     run_to_stop(st, runs)
+    return outcome(hyps, nodes, states, st, runs, alpha, correction)
+
+
+def outcome(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, st: SequentialState,
+            runs: TwinRuns, alpha: float, correction: str) -> AdaptiveOutcome:
+    """The :class:`AdaptiveOutcome` of a state run to its stops on in-memory ``nodes``."""
     p_lo, p_up, nhat = st.p_values(runs)
     per_hyp = st.runs_used()
     paths = hypothesis_paths(hyps, nodes.index)
-    need = node_needs(paths, per_hyp, runs.in_b0, len(nodes.index))
-    used = need.sum(axis=1)
+    n_nodes = len(nodes.index)
+    used = node_needs(paths, per_hyp, runs.in_b0, n_nodes,
+                      reachable(hyps, nodes, states)).sum(axis=1)
+    whole = node_needs(paths, per_hyp, runs.in_b0, n_nodes).sum()
     rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
     return AdaptiveOutcome(
         p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
-        int(used.sum()), int(len(nodes.index) * budget),
-        int(node_runs(paths, per_hyp, len(nodes.index)).sum()), paper_hours(hyps, budget),
+        int(used.sum()), int(n_nodes * st.budget),
+        int(node_runs(paths, per_hyp, n_nodes).sum()), paper_hours(hyps, st.budget), int(whole),
     )
 
 

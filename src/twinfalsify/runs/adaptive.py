@@ -34,9 +34,11 @@ from twinfalsify.inference.sequential import (
     family_sizes,
     hypothesis_paths,
     node_needs,
+    reachable,
     twin_runs_indexed,
 )
 from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, simulate_jobs
+from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
@@ -115,6 +117,11 @@ def run_adaptive_shard(
     def runs_now():
         return embed_runs(twin_runs_indexed(sub, nodes, states), idx, h_total)
 
+    # depth truncation (docs/sequential.md): hours of a run that already left every B-set
+    # needing them are not kept. In-process twins compute whole paths at no cost, so their
+    # node rows are what a truncating engine would simulate; protocol twins (Pulse) get
+    # whole paths until the protocol can ask them to stop a run early.
+    truncate = not isinstance(twin, ProtocolTwin)
     runs0 = runs_now()
     in_b0 = runs0.in_b0  # real X_0 in B_0: known before any simulation
     st.update(runs0, 0)
@@ -142,21 +149,29 @@ def run_adaptive_shard(
                 fresh.append([~covered[index[node[:s]], rows] for s in range(1, len(node) + 1)])
                 for s in range(1, len(node) + 1):
                     covered[index[node[:s]], rows] = True
-        done_runs = 0
         results = simulate_jobs(twin, [(node, j0 + rows) for node, rows in jobs], x0, seeds,
                                 actions, None)
+        got = []  # (node, batch rows, values, status, message, clamped): filled first here
         for (leaf, rows), new_at, (feats, status, message, clamped) in zip(
                 jobs, fresh, results, strict=True):
             requested += rows.size * len(leaf)
             for s, new in enumerate(new_at, start=1):
-                if not new.any():
-                    continue
-                node = leaf[:s]
-                vals = feats[new, s - 1, :]
-                nodes.values[index[node], j0 + rows[new]] = vals
-                frames.append(_rows(node_name(node), s, vals, status[new], message[new],
-                                    clamped[new], stays[j0 + rows[new]]))
-                done_runs += int(new.sum())
+                if new.any():
+                    got.append((leaf[:s], rows[new], feats[new, s - 1, :], status[new],
+                                message[new], clamped[new]))
+                    nodes.values[index[leaf[:s]], j0 + rows[new]] = feats[new, s - 1, :]
+        if truncate:  # keep the hours a depth-truncating twin simulates; forget the rest
+            reach = reachable(sub, nodes, states)
+            keep = node_needs(paths, np.where(act, j1, 0), in_b0[idx], len(index),
+                              reach)[:, j0:j1]
+        done_runs = 0
+        for node, rows, vals, status, message, clamped in got:
+            k = keep[index[node], rows] if truncate else np.ones(rows.size, bool)
+            nodes.values[index[node], j0 + rows[~k]] = np.nan
+            if k.any():
+                frames.append(_rows(node_name(node), len(node), vals[k], status[k],
+                                    message[k], clamped[k], stays[j0 + rows[k]]))
+                done_runs += int(k.sum())
         sim_node_runs += done_runs
         st.update(runs_now(), b)
         running = int(st.active[idx].sum())
@@ -177,7 +192,8 @@ def run_adaptive_shard(
     })  # fmt: skip
     rows = (pd.concat(frames, ignore_index=True) if frames
             else pd.DataFrame(columns=list(NODE_COLUMNS)))
-    per_node = node_needs(paths, used[idx], in_b0[idx], len(index)).sum(axis=1)
+    per_node = node_needs(paths, used[idx], in_b0[idx], len(index),
+                          reachable(sub, nodes, states) if truncate else None).sum(axis=1)
     summary = {
         "shard": shard, "batch_size": int(batch_size), "budget": budget,
         "parameter_sets": len(idx), "node_rows": len(rows),
@@ -185,6 +201,7 @@ def run_adaptive_shard(
         "twin_hours_fixed": fixed,
         "twin_hours_requested": requested,
         "runs_saved": fixed - len(rows),
+        "depth_truncation": truncate,
         "decisions": {
             side: pd.Series(dec[f"decision_{side}"]).value_counts().to_dict()
             for side in ("lo", "up")
