@@ -4,6 +4,7 @@ every simulated run accounted for, twin values equal to the fixed scheme's."""
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 import pandas as pd
@@ -33,11 +34,12 @@ def study_and_twin(tmp_path_factory):
     runs = pd.concat([tp.run_shard(twin, study.plan, k, study.x0, study.actions,
                                    log=io.StringIO()) for k in range(len(study.plan.shards))],
                      ignore_index=True)
-    return study, twin, runs
+    (tmp / "twin_context.json").write_text(json.dumps(ctx))
+    return study, twin, runs, tmp / "twin_context.json"
 
 
 def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
-    study, _, runs = study_and_twin
+    study, _, runs, _ = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
     ref, _ = bounds.twin_side(study.hyps, nodes, study.states)
     got = twin_runs_indexed(study.hyps, nodes, study.states)
@@ -54,7 +56,7 @@ def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
 @pytest.mark.slow
 @pytest.mark.parametrize("combine", ["union", "product"])
 def test_adaptive_shards_reproduce_the_in_memory_procedure(study_and_twin, combine):
-    study, twin, runs = study_and_twin
+    study, twin, runs, _ = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
     shard_of = np.zeros(len(study.hyps), np.int64)
     for k in range(len(study.plan.shards)):
@@ -115,7 +117,7 @@ def test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes(study_a
 def test_simulate_jobs_keeps_one_result_per_job_in_order(study_and_twin):
     """Jobs without rows get empty results in their place; every other job's values are its
     own sequence's, for the rows asked, in-process and through the protocol alike."""
-    study, twin, _ = study_and_twin
+    study, twin, _, _ = study_and_twin
     seeds = study.plan.run_seeds()
     seqs = [tp.parse_node(leaf) for leaf in study.plan.shards[0]][:2]
     jobs = [(seqs[0], np.array([3, 1, 7])), (seqs[1], np.array([], int)), (seqs[1], np.arange(4))]
@@ -137,7 +139,7 @@ def test_depth_truncation_drops_only_hours_no_hypothesis_can_use(study_and_twin)
     """Brute force over hypotheses, runs and hours: node a_1:s of run j is kept iff some
     hypothesis using it has j revealed, X_0 in B_0 and every earlier hour of its path in
     B_s' (or failed: it cannot be shown to have left); and hours are saved."""
-    study, twin, runs = study_and_twin
+    study, twin, runs, ctx = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
     hyps, states = study.hyps, study.states
     # BY: no Holm-aware futility, so more hypotheses run long enough to leave B-sets
@@ -160,20 +162,27 @@ def test_depth_truncation_drops_only_hours_no_hypothesis_can_use(study_and_twin)
                     break  # left B_s: later hours cannot matter to h
     assert ref.twin_hours_adaptive == want.sum()
     np.testing.assert_array_equal(ref.runs_used, want.sum(axis=1))
-    # the shards of an in-process twin keep exactly these node rows, and decide the same
-    rows, decs = [], []
-    for k in range(len(study.plan.shards)):
-        r, dec, summary = run_adaptive_shard(
-            twin, study.plan, k, study.x0, study.actions, hyps, study.obs, states,
-            batch_size=40, correction="by", log=io.StringIO())
-        assert summary["depth_truncation"] and summary["twin_hours_adaptive"] == len(r)
-        rows.append(r)
-        decs.append(dec)
-    sim = pd.concat(rows, ignore_index=True)
-    got = np.zeros_like(want)
-    got[sim["node"].map(lambda n: nodes.index[tp.parse_node(n)]),
-        sim["init_stay_id"].map({s: j for j, s in enumerate(study.plan.x0_stay_ids)})] = True
-    np.testing.assert_array_equal(got, want)
-    dec = pd.concat(decs).set_index("hyp_id").loc[hyps["hyp_id"]]
-    np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
-    np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)
+    # the shards keep exactly these node rows and decide the same: an in-process twin, and
+    # the same twin served over the protocol (it advertises truncate: the requests carry
+    # box paths, and it stops runs that no longer need hours)
+    served = make_twin("biased", {"kind": "biased", "shift": {"HR": 25.0}, "protocol": True,
+                                  "workers": 2}, ctx)
+    assert served.truncates
+    for tw in (twin, served):
+        rows, decs = [], []
+        for k in range(len(study.plan.shards)):
+            r, dec, summary = run_adaptive_shard(
+                tw, study.plan, k, study.x0, study.actions, hyps, study.obs, states,
+                batch_size=40, correction="by", log=io.StringIO())
+            assert summary["depth_truncation"] and summary["twin_hours_adaptive"] == len(r)
+            rows.append(r)
+            decs.append(dec)
+        sim = pd.concat(rows, ignore_index=True)
+        assert (sim["status"] == "ok").all()
+        got = np.zeros_like(want)
+        got[sim["node"].map(lambda n: nodes.index[tp.parse_node(n)]),
+            sim["init_stay_id"].map({s: j for j, s in enumerate(study.plan.x0_stay_ids)})] = True
+        np.testing.assert_array_equal(got, want)
+        dec = pd.concat(decs).set_index("hyp_id").loc[hyps["hyp_id"]]
+        np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
+        np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)

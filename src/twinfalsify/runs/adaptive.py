@@ -39,6 +39,7 @@ from twinfalsify.inference.sequential import (
 )
 from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, simulate_jobs
 from twinfalsify.runs.protocol_twin import ProtocolTwin
+from twinfalsify.runs.truncation import JobBoxes
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
@@ -121,9 +122,11 @@ def run_adaptive_shard(
     # needing them are not kept. In-process twins compute whole paths at no cost, so their
     # node rows are what a truncating engine would simulate; protocol twins (Pulse) get
     # whole paths until the protocol can ask them to stop a run early.
-    truncate = not isinstance(twin, ProtocolTwin)
+    send_boxes = isinstance(twin, ProtocolTwin) and twin.truncates
+    truncate = send_boxes or not isinstance(twin, ProtocolTwin)
     runs0 = runs_now()
     in_b0 = runs0.in_b0  # real X_0 in B_0: known before any simulation
+    boxes = JobBoxes(sub, in_b0[idx], states, nodes.x0) if send_boxes else None
     st.update(runs0, 0)
     sim_node_runs = 0
     requested = 0  # hours asked of the twin: a twin without prefix reuse simulates these
@@ -149,21 +152,36 @@ def run_adaptive_shard(
                 fresh.append([~covered[index[node[:s]], rows] for s in range(1, len(node) + 1)])
                 for s in range(1, len(node) + 1):
                     covered[index[node[:s]], rows] = True
+        cw = None
+        if send_boxes:  # per job and row: box paths of the hypotheses it serves
+            cw = [boxes.for_job(leaf, j0 + rows, new_at, act) for (leaf, rows), new_at
+                  in zip(jobs, fresh, strict=True)]
         results = simulate_jobs(twin, [(node, j0 + rows) for node, rows in jobs], x0, seeds,
-                                actions, None)
-        got = []  # (node, batch rows, values, status, message, clamped): filled first here
-        for (leaf, rows), new_at, (feats, status, message, clamped) in zip(
-                jobs, fresh, results, strict=True):
+                                actions, None, cw)
+        # each (node, run) from the first job that knows it: a value, or a failure (a run
+        # truncated by the twin knows nothing past its last hour: another job may)
+        got = []  # (node, batch rows, values, status, message, clamped)
+        filled = np.zeros((len(index), j1 - j0), dtype=bool)
+        for (leaf, rows), (feats, status, message, clamped) in zip(jobs, results, strict=True):
             requested += rows.size * len(leaf)
-            for s, new in enumerate(new_at, start=1):
+            for s in range(1, len(leaf) + 1):
+                v = index[leaf[:s]]
+                have = np.isfinite(feats[:, s - 1, :]).all(axis=1) | (status != "ok")
+                new = have & ~filled[v, rows]
                 if new.any():
+                    filled[v, rows[new]] = True
                     got.append((leaf[:s], rows[new], feats[new, s - 1, :], status[new],
                                 message[new], clamped[new]))
-                    nodes.values[index[leaf[:s]], j0 + rows[new]] = feats[new, s - 1, :]
+                    nodes.values[v, j0 + rows[new]] = feats[new, s - 1, :]
         if truncate:  # keep the hours a depth-truncating twin simulates; forget the rest
             reach = reachable(sub, nodes, states)
             keep = node_needs(paths, np.where(act, j1, 0), in_b0[idx], len(index),
                               reach)[:, j0:j1]
+            if (keep & ~filled).any():
+                raise ContractError(
+                    f"twin {twin.name}: runs truncated before hours still needed (adaptive "
+                    f"shard {shard}, batch {b}); the caller's truncation check should have "
+                    "caught this")
         done_runs = 0
         for node, rows, vals, status, message, clamped in got:
             k = keep[index[node], rows] if truncate else np.ones(rows.size, bool)

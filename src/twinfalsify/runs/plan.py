@@ -136,7 +136,7 @@ def plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def simulate_jobs(
     twin: Twin, jobs: list[tuple[tuple[int, ...], np.ndarray]], x0: pd.DataFrame,
-    seeds: np.ndarray, actions: ActionBins, log,
+    seeds: np.ndarray, actions: ActionBins, log, continue_while: list | None = None,
 ) -> list:
     """One SimResult-like (features, status, message, clamped) per job (sequence, rows):
     the rows (positions in x0 / seeds) simulated along the action sequence, implausible
@@ -146,15 +146,17 @@ def simulate_jobs(
     hours, which the runner reads as a shorter run): one worker pool, and the runner's
     seed-grouped, prefix-ordered schedule lets a save/restore twin (Pulse) branch shared
     prefixes instead of simulating them again for every sequence. In-process twins get one
-    vectorised call per job.
+    vectorised call per job. ``continue_while`` (per job, per row: ``runs.truncation`` box
+    paths) goes to a protocol twin that can truncate; in-process twins ignore it.
     """
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
     jobs = [(seq, np.asarray(rows, dtype=np.int64)) for seq, rows in jobs]
     if not all(rows.size for _, rows in jobs):  # a job without rows: an empty result
         full = [k for k, (_, rows) in enumerate(jobs) if rows.size]
+        cw = None if continue_while is None else [continue_while[k] for k in full]
         got = dict(zip(full, simulate_jobs(twin, [jobs[k] for k in full], x0, seeds, actions,
-                                           log), strict=True))
+                                           log, cw), strict=True))
         none = np.empty(0, dtype=object)
         return [got.get(k, (np.empty((0, len(seq), len(FEATURES))), none, none, none))
                 for k, (seq, _) in enumerate(jobs)]
@@ -166,7 +168,10 @@ def simulate_jobs(
         for (seq, _), a, b in zip(jobs, cuts[:-1], cuts[1:], strict=True):
             doses[a:b, : len(seq)] = actions.doses(np.asarray(seq))
         every = np.concatenate([rows for _, rows in jobs])
-        res = twin.simulate(x0.iloc[every].reset_index(drop=True), doses, seeds[every])
+        kw = {}
+        if continue_while is not None:
+            kw["continue_while"] = [paths for job in continue_while for paths in job]
+        res = twin.simulate(x0.iloc[every].reset_index(drop=True), doses, seeds[every], **kw)
         if res.features.shape[:2] != (n, t):
             raise ContractError(
                 f"twin {twin.name}: simulate returned features of shape {res.features.shape}, "

@@ -7,7 +7,9 @@ One JSON object per line in each direction; logs go to stderr, never stdout.
         "features": [{"name": str, "unit": str}, ...],
         "capabilities": {"save_restore": bool, "max_hours": int, "batch": int}}
     -> {"op": "simulate", "id": str, "x0": {feature: value, ...},
-        "doses": [[iv_mL_per_h, vaso_ug_per_kg_min], ...], "hours": t, "seed": int}
+        "doses": [[iv_mL_per_h, vaso_ug_per_kg_min], ...], "hours": t, "seed": int,
+        "continue_while": [[[feature, ">"|"<="|"any", number], ...], ...]}  # optional
+    <- {"op": "result", ..., "truncated": true}   # status ok, fewer hours: see below
     <- {"op": "result", "id": str, "status": "ok"|"init_failed"|"irreversible"|"error",
         "message": str, "hours": [{feature: value, ...}, ...],   # completed hours 1..s
         "clamped": {feature: [given, used], ...}}
@@ -17,9 +19,13 @@ One JSON object per line in each direction; logs go to stderr, never stdout.
     <- {"op": "bye"}
 
 ``hours`` holds every hour that completed before a failure, so prefix nodes of
-a failed run stay usable. The caller adds "timeout" when a run exceeds its time
-limit. ``simulate_batch`` is an optional capability within version 1: the
-caller sends it only to a twin whose hello advertises ``capabilities.batch``
+a failed run stay usable. ``continue_while`` (sent only to a twin whose hello advertises
+``capabilities.truncate``) lets the twin stop a run once no path of boxes still holds on
+its completed hours (``runs.truncation``): it answers status ok with those hours and
+``"truncated": true``, which the caller checks against the same rule. The caller adds
+"timeout" when a run exceeds its time limit. ``simulate_batch`` is an optional
+capability within version 1: the caller sends it only to a twin whose hello advertises
+``capabilities.batch``
 > 1 (``serve_forever`` answers it for every twin). See docs/twin-protocol.md
 for the full description.
 """
@@ -231,6 +237,8 @@ def check_hello(
     caps = {"save_restore": False, "max_hours": None, **caps}
     if not isinstance(caps["save_restore"], bool):
         raise ProtocolError("capability 'save_restore' must be true or false")
+    if not isinstance(caps.get("truncate", False), bool):
+        raise ProtocolError("capability 'truncate' must be true or false")
     if caps["max_hours"] is not None and not (
         isinstance(caps["max_hours"], int) and caps["max_hours"] >= 1
     ):
@@ -354,6 +362,7 @@ def check_result(
     required: Sequence[str],
     declared: Collection[str],
     columns: Sequence[str],
+    continue_while: list | None = None,
 ) -> CheckedResult:
     """Validate a simulate answer for ``request_id`` that asked for ``hours`` hours.
 
@@ -386,14 +395,24 @@ def check_result(
         raise ProtocolError(f"field 'hours' must be a list, got {type(rows).__name__}")
     if len(rows) > hours:
         raise ProtocolError(f"{len(rows)} hours returned, more than the {hours} asked for")
-    if status == "ok" and len(rows) != hours:
+    truncated = status == "ok" and len(rows) < hours
+    if truncated and (msg.get("truncated") is not True or continue_while is None):
         raise ProtocolError(
             f"status ok but only {len(rows)} of {hours} hours returned "
-            "(a twin that stops early must report init_failed, irreversible or error)"
+            "(a twin that stops early must report init_failed, irreversible or error, or "
+            "'truncated': true when the request's continue_while allows it)"
         )
     values = _fast_values(rows, required, declared, columns)
     if values is None:
         values = _checked_values(rows, required, declared, columns)
+    if truncated:
+        from twinfalsify.runs.truncation import hours_needed
+
+        need = hours_needed(continue_while, values, hours, columns)
+        if len(rows) < need:
+            raise ProtocolError(
+                f"truncated after hour {len(rows)}, but a continue_while path still holds "
+                f"(hour {need} is needed)")
     clamped = msg.get("clamped", {})
     if not isinstance(clamped, dict) or not all(
         isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)

@@ -52,6 +52,7 @@ class ProtocolTwin:
         self.progress = progress
         self.batch_size = batch_size
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
+        self._truncates: bool | None = None
 
     def hello(self) -> dict[str, Any]:
         """Start one worker, return its (validated) hello answer, shut it down."""
@@ -68,13 +69,25 @@ class ProtocolTwin:
             worker.close()
         return json.loads(json.dumps(hello))
 
-    def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
+    @property
+    def truncates(self) -> bool:
+        """Whether the twin advertises ``capabilities.truncate`` (asked once)."""
+        if self._truncates is None:
+            self._truncates = bool(self.hello().get("capabilities", {}).get("truncate", False))
+        return self._truncates
+
+    def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray,
+                 continue_while: list | None = None) -> SimResult:
+        """``continue_while`` (per run, ``runs.truncation`` box paths) is sent only to a twin
+        that advertises ``capabilities.truncate``; other twins simulate whole paths."""
+        if continue_while is not None and not self.truncates:
+            continue_while = None
         try:
             return simulate_via_protocol(
                 self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
                 retries=self.retries, progress=self.progress, env=self.env,
                 batch_size=self.batch_size, fail_fast_runs=self.fail_fast_runs,
-                max_restarts=self.max_restarts,
+                max_restarts=self.max_restarts, continue_while=continue_while,
             )
         except ContractError as exc:  # name the twin as the config does
             raise ContractError(f"twins.{self.name}: {exc}") from None

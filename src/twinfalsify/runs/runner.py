@@ -357,8 +357,11 @@ class _Pool:
         batch_size: int = DEFAULT_BATCH_SIZE,
         fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
         max_restarts: int = DEFAULT_MAX_RESTARTS,
+        continue_while: Sequence[list] | None = None,
     ) -> None:
         self.command, self.env = command, env
+        # per run: box paths a truncating twin may stop by (runs.truncation), or None
+        self.continue_while = continue_while
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
         self.settled = 0  # runs recorded so far, any status
         self.any_ok = False
@@ -478,7 +481,7 @@ class _Pool:
 
     def _request(self, i: int, request_id: str) -> dict[str, Any]:
         hours = int(self.hours[i])
-        return {
+        request = {
             "op": "simulate",
             "id": request_id,
             "x0": dict(zip(FEATURES, self.x0[i].tolist(), strict=True)),
@@ -486,9 +489,18 @@ class _Pool:
             "hours": hours,
             "seed": int(self.seeds[i]),
         }
+        if self.continue_while is not None:
+            request["continue_while"] = self.continue_while[i]
+        return request
+
+    def _check(self, answer: Any, request_id: str, i: int, declared) -> Any:
+        paths = None
+        if self.continue_while is not None:
+            paths = [[tuple(b) for b in p] for p in self.continue_while[i]]
+        return check_result(answer, request_id, int(self.hours[i]), self.required, declared,
+                            FEATURES, paths)
 
     def _run_one(self, slot: int, i: int) -> None:
-        hours = int(self.hours[i])
         attempts = self.retries + 1
         last_status, last_message = "error", ""
         for attempt in range(attempts):
@@ -498,10 +510,7 @@ class _Pool:
             try:
                 worker = self.workers.get(slot) or self._start_worker(slot)
                 answer = worker.ask(self._request(i, request_id), self.timeout_s)
-                checked = check_result(
-                    answer, request_id, hours, self.required,
-                    worker.hello["declared_units"], FEATURES,
-                )
+                checked = self._check(answer, request_id, i, worker.hello["declared_units"])
             except _WorkerTimeout as exc:
                 hung = self.workers.get(slot)
                 self._drop_worker(slot)  # kill first: the stderr tail is then complete
@@ -562,8 +571,7 @@ class _Pool:
             for i, request_id, result in zip(idx, ids, results, strict=True):
                 i = int(i)
                 try:
-                    checked = check_result(result, request_id, int(self.hours[i]),
-                                           self.required, declared, FEATURES)
+                    checked = self._check(result, request_id, i, declared)
                 except ProtocolError:
                     redo.append(i)
                     continue
@@ -639,6 +647,7 @@ def simulate_via_protocol(
     batch_size: int = DEFAULT_BATCH_SIZE,
     fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
     max_restarts: int = DEFAULT_MAX_RESTARTS,
+    continue_while: Sequence[list] | None = None,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -663,7 +672,11 @@ def simulate_via_protocol(
     Circuit breaker (ContractError naming the command, the reason and the first failed
     run's status and message): the first ``fail_fast_runs`` recorded runs all failed, or
     workers had to be restarted more than ``max_restarts`` times before any run was ok;
-    0 turns a check off. After the first ok run neither check acts. (Values are checked
+    0 turns a check off. After the first ok run neither check acts.
+
+    continue_while: per run, the box paths of ``runs.truncation`` (send only to a twin
+    whose hello advertises ``capabilities.truncate``): a run may come back truncated,
+    status ok with NaN after its last needed hour. (Values are checked
     against the trajectory contract's ranges where a study stores runs,
     ``runs.plan.run_shard``, not here.)
     """
@@ -686,8 +699,10 @@ def simulate_via_protocol(
     if n == 0:
         return SimResult(empty_features(0, t), np.full(0, "", dtype=object))
 
+    if continue_while is not None and len(continue_while) != n:
+        raise ContractError(f"continue_while holds {len(continue_while)} runs, expected {n}")
     pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
-                 int(batch_size), int(fail_fast_runs), int(max_restarts))
+                 int(batch_size), int(fail_fast_runs), int(max_restarts), continue_while)
     groups = plan_groups(seeds, doses)
     pool.tasks.extend(groups)
     n_threads = min(workers, len(groups))

@@ -27,13 +27,17 @@ import pandas as pd
 
 from twinfalsify import __version__
 from twinfalsify.runs.protocol import serve_forever
+from twinfalsify.runs.truncation import hours_needed, parse_paths
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES, ContractError
 from twinfalsify.twins.base import Twin
 
 BATCH_MAX = 1000  # runs per simulate_batch message a served builtin twin accepts
 
 
-def _parse(request: dict[str, Any]) -> tuple[list[float], np.ndarray, int, int]:
+Parsed = tuple[list[float], np.ndarray, int, int, list | None]
+
+
+def _parse(request: dict[str, Any]) -> Parsed:
     """(x0 values in FEATURES order, doses (hours, 2), hours, seed) of a simulate request.
 
     Raises ValueError naming the field and the problem.
@@ -53,7 +57,9 @@ def _parse(request: dict[str, Any]) -> tuple[list[float], np.ndarray, int, int]:
     seed = request.get("seed")
     if not isinstance(seed, int) or not 0 <= seed < 2**64:
         raise ValueError(f"request field 'seed' must be an integer in [0, 2^64), got {seed!r}")
-    return [float(x0[f]) for f in FEATURES], doses, hours, seed
+    paths = request.get("continue_while")
+    paths = None if paths is None else parse_paths(paths)
+    return [float(x0[f]) for f in FEATURES], doses, hours, seed, paths
 
 
 def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
@@ -81,9 +87,12 @@ def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
             "clamped": clamped}
 
 
-def _simulate_parsed(twin: Twin, parsed: list[tuple[list[float], np.ndarray, int, int]]
-                     ) -> list[dict[str, Any]]:
-    """One vectorised ``twin.simulate`` over requests of equal length -> result fields."""
+def _simulate_parsed(twin: Twin, parsed: list[Parsed]) -> list[dict[str, Any]]:
+    """One vectorised ``twin.simulate`` over requests of equal length -> result fields.
+
+    A request with ``continue_while`` is truncated after the hours it still needs
+    (``runs.truncation``): a builtin twin computes whole paths at no cost, so it answers
+    as an engine that stops the run there would."""
     hours = parsed[0][2]
     frame = pd.DataFrame([p[0] for p in parsed], columns=list(FEATURES))
     doses = np.stack([p[1] for p in parsed])
@@ -95,8 +104,17 @@ def _simulate_parsed(twin: Twin, parsed: list[tuple[list[float], np.ndarray, int
     # hours completed = the leading hours whose every feature is finite
     done = np.cumprod(np.isfinite(res.features).all(axis=2), axis=1).sum(axis=1)
     values = res.features.tolist()  # Python floats, once for the whole batch
-    return [_fields(values[k][: done[k]], res.status[k], res.message[k], res.clamped[k], hours)
-            for k in range(len(parsed))]
+    out = []
+    for k, p in enumerate(parsed):
+        rows = values[k][: done[k]]
+        cut = hours
+        if p[4] is not None and res.status[k] == "ok" and len(rows) == hours:
+            cut = hours_needed(p[4], np.asarray(rows), hours)
+        fields = _fields(rows[:cut], res.status[k], res.message[k], res.clamped[k], cut)
+        if cut < hours:
+            fields["truncated"] = True
+        out.append(fields)
+    return out
 
 
 def batch_handler(twin: Twin) -> Callable[[list[dict[str, Any]]], list[dict[str, Any]]]:
@@ -112,7 +130,7 @@ def batch_handler(twin: Twin) -> Callable[[list[dict[str, Any]]], list[dict[str,
     def simulate_batch(requests: list[dict[str, Any]]) -> list[dict[str, Any]]:
         out: list[dict[str, Any] | None] = [None] * len(requests)
         groups: dict[int, list[int]] = {}
-        parsed: dict[int, tuple[list[float], np.ndarray, int, int]] = {}
+        parsed: dict[int, Parsed] = {}
         for k, request in enumerate(requests):
             try:
                 parsed[k] = _parse(request)
@@ -154,7 +172,7 @@ def handlers(
     """
 
     def hello() -> dict[str, Any]:
-        caps: dict[str, Any] = {"save_restore": False}
+        caps: dict[str, Any] = {"save_restore": False, "truncate": True}
         if max_hours is not None:
             caps["max_hours"] = max_hours
         if batch is not None:
