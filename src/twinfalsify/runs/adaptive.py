@@ -120,8 +120,8 @@ def run_adaptive_shard(
 
     # depth truncation (docs/sequential.md): hours of a run that already left every B-set
     # needing them are not kept. In-process twins compute whole paths at no cost, so their
-    # node rows are what a truncating engine would simulate; protocol twins (Pulse) get
-    # whole paths until the protocol can ask them to stop a run early.
+    # node rows are what a truncating engine would simulate; a protocol twin advertising
+    # `truncate` gets the box paths and stops such runs; others simulate whole paths.
     send_boxes = isinstance(twin, ProtocolTwin) and twin.truncates
     truncate = send_boxes or not isinstance(twin, ProtocolTwin)
     runs0 = runs_now()
