@@ -174,9 +174,9 @@ def run_adaptive_shard(
                                 message[new], clamped[new]))
                     nodes.values[v, j0 + rows[new]] = feats[new, s - 1, :]
         if truncate:  # keep the hours a depth-truncating twin simulates; forget the rest
-            reach = reachable(sub, nodes, states)
-            keep = node_needs(paths, np.where(act, j1, 0), in_b0[idx], len(index),
-                              reach)[:, j0:j1]
+            batch = TwinNodes(index=index, values=nodes.values[:, j0:j1], x0=nodes.x0[j0:j1])
+            keep = node_needs(paths, np.where(act, j1 - j0, 0), in_b0[idx][:, j0:j1],
+                              len(index), reachable(sub, batch, states))
             if (keep & ~filled).any():
                 raise ContractError(
                     f"twin {twin.name}: runs truncated before hours still needed (adaptive "

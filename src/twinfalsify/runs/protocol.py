@@ -41,6 +41,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from twinfalsify.runs.truncation import hours_needed
+
 PROTOCOL_VERSION = 1
 FAILURE_STATUSES = ("init_failed", "irreversible", "error")
 
@@ -406,8 +408,6 @@ def check_result(
     if values is None:
         values = _checked_values(rows, required, declared, columns)
     if truncated:
-        from twinfalsify.runs.truncation import hours_needed
-
         need = hours_needed(continue_while, values, hours, columns)
         if len(rows) < need:
             raise ProtocolError(

@@ -494,9 +494,7 @@ class _Pool:
         return request
 
     def _check(self, answer: Any, request_id: str, i: int, declared) -> Any:
-        paths = None
-        if self.continue_while is not None:
-            paths = [[tuple(b) for b in p] for p in self.continue_while[i]]
+        paths = None if self.continue_while is None else self.continue_while[i]
         return check_result(answer, request_id, int(self.hours[i]), self.required, declared,
                             FEATURES, paths)
 

@@ -96,6 +96,7 @@ class JobBoxes:
         self.base = states.base_codes(x0)
         self.medians = states.medians
         self._paths: dict[tuple[int, int], list | None] = {}
+        self._served: dict[tuple[int, ...], list[int]] = {}  # leaf -> hypotheses on its path
 
     def _path(self, h: int, base: int) -> list | None:
         key = (h, base)
@@ -109,10 +110,12 @@ class JobBoxes:
         """Per run of the job (X_0 positions ``runs``): its box paths. ``fresh[s-1]``: the
         runs for which this job fills node leaf[:s] first; ``active``: running hypotheses."""
         out: list[dict] = [{} for _ in runs]
-        for h, seq in enumerate(self.seqs):
-            t = len(seq)
-            if not active[h] or t > len(leaf) or leaf[:t] != seq:
+        if leaf not in self._served:
+            self._served[leaf] = [h for h, q in enumerate(self.seqs) if leaf[:len(q)] == q]
+        for h in self._served[leaf]:
+            if not active[h]:
                 continue
+            t = len(self.seqs[h])
             for r in np.flatnonzero(fresh[t - 1] & self.in_b0[h, runs]):
                 path = self._path(h, int(self.base[runs[r]]))
                 if path is not None:
