@@ -96,22 +96,32 @@ def test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes(study_a
                                                                           tmp_path):
     """A protocol twin gets each batch in one call, so an engine that keeps the dose prefixes
     of one X_0 at a time (the Pulse worker) simulates exactly the node-runs the summary
-    reports. Simulating each node's runs in a call of its own (a fresh pool each time, the
-    X_0's sequences apart) made such an engine simulate shared prefixes again."""
+    reports, with depth truncation (``--truncate``, as the Pulse worker) or without.
+    Simulating each node's runs in a call of its own (a fresh pool each time, the X_0's
+    sequences apart) made such an engine simulate shared prefixes again."""
     study = study_and_twin[0]
-    log = tmp_path / "engine-hours.txt"
-    twin = ProtocolTwin("faulty", [*FAULTY_TWIN, f"--engine-hours={log}", "--batch=16"],
-                        workers=2, env=ENV, progress=False)
-    node_runs = requested = 0
-    for k in range(len(study.plan.shards)):
-        _, _, summary = run_adaptive_shard(
-            twin, study.plan, k, study.x0, study.actions, study.hyps, study.obs, study.states,
-            batch_size=100, log=io.StringIO())
-        node_runs += summary["twin_hours_adaptive"]
-        requested += summary["twin_hours_requested"]
-    engine = sum(int(v) for v in log.read_text().split())
-    assert requested > node_runs  # sibling sequences share prefixes: the test has teeth
-    assert engine == node_runs
+    got = {}
+    for truncate in (False, True):
+        log = tmp_path / f"engine-hours-{truncate}.txt"
+        twin = ProtocolTwin("faulty", [*FAULTY_TWIN, f"--engine-hours={log}", "--batch=16",
+                                       "--wobble=0.05", *(["--truncate"] if truncate else [])],
+                            workers=2, env=ENV, progress=False)
+        node_runs = requested = 0
+        decisions = []
+        for k in range(len(study.plan.shards)):
+            _, dec, summary = run_adaptive_shard(
+                twin, study.plan, k, study.x0, study.actions, study.hyps, study.obs,
+                study.states, batch_size=40, correction="by", log=io.StringIO())
+            node_runs += summary["twin_hours_adaptive"]
+            requested += summary["twin_hours_requested"]
+            assert summary["depth_truncation"] is truncate
+            decisions.append(dec)
+        engine = sum(int(v) for v in log.read_text().split())
+        assert requested > node_runs  # sibling sequences share prefixes: the test has teeth
+        assert engine == node_runs
+        got[truncate] = (node_runs, pd.concat(decisions, ignore_index=True))
+    assert got[True][0] < got[False][0]  # runs that left every B-set were cut short
+    pd.testing.assert_frame_equal(got[True][1], got[False][1])  # decisions unchanged
 
 
 def test_simulate_jobs_keeps_one_result_per_job_in_order(study_and_twin):

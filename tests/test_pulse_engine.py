@@ -9,7 +9,7 @@ Skipped, with one line saying why, unless a real Pulse build is reachable:
 ``envs/pulse/build.sh SRC PREFIX`` prints the last two; PULSE_PYTHON is PREFIX/venv/bin/python.
 Every test talks to the worker as the runner does (a subprocess over the protocol) except
 the refused patient, which needs the worker's clamp turned off. Cost on a 2-core machine:
-about 9 simulated engine-hours (~205 CPU-s each) in all; docs/pulse.md has the measured times.
+about 11 simulated engine-hours (~205 CPU-s each) in all; docs/pulse.md has the measured times.
 """
 
 from __future__ import annotations
@@ -144,6 +144,27 @@ def test_each_action_type_and_the_state_cache(tmp_path):
     assert "1 stabilisations" in err
     _, again, err2, _ = serve(reqs[:1], tmp_path / "cache")
     assert again[0]["hours"] == res[0]["hours"] and "1 stabilised-state cache hits" in err2
+
+
+def test_depth_truncation_stops_the_engine_and_keeps_the_prefix(tmp_path):
+    """P1 with the recorded S2 for 3 hours, and a continue_while path that leaves at hour 1
+    (MAP above the recorded hour-1 value + 1): the engine simulates hour 1 only and answers
+    it, flagged truncated. A later request for 2 hours continues from the saved hour-1
+    state: hour 1 is bit-identical, hour 2 equals the recording."""
+    s2 = [list(d) for d in META["design"]["sequences"]["S2"]]
+    x0 = x0_of("P1")
+    leave = [["MeanBP", ">", recorded("P1-S2", 1, "MeanBP") + 1.0], ["MeanBP", "any", 0.0]]
+    cut = {**request("cut", x0, s2[:3]), "continue_while": [leave]}
+    hello, (res, rest), err, _ = serve([cut, request("rest", x0, s2[:2])], tmp_path / "cache")
+    assert hello["capabilities"]["truncate"] is True
+    assert res["status"] == "ok" and res["truncated"] is True and len(res["hours"]) == 1
+    assert rest["status"] == "ok" and "truncated" not in rest
+    assert rest["hours"][0] == res["hours"][0]
+    for h in (1, 2):
+        for f in CHECK:
+            assert rest["hours"][h - 1][f] == pytest.approx(recorded("P1-S2", h, f), rel=1e-4)
+    assert ("simulated 2 engine-hours for 5 requested hours (1 saved by prefix reuse, 2 by "
+            "depth truncation in 1 runs)") in err
 
 
 def test_clamped_patient_runs_and_says_so(tmp_path):

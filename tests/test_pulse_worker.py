@@ -31,7 +31,8 @@ from twinfalsify.pulse.worker import (
     norepinephrine_ml_per_min,
     saline_ml_per_min,
 )
-from twinfalsify.schema import FEATURES, ContractError
+from twinfalsify.runs.protocol import check_result
+from twinfalsify.schema import FEATURE_TABLE, FEATURES, ContractError
 
 TESTS = Path(__file__).resolve().parent
 FAKES = TESTS / "fakes"
@@ -163,6 +164,63 @@ def test_every_recorded_run_in_one_worker_reuses_prefixes(tmp_path):
     w2.close()
 
 
+def _path(run_id: str, holds: list[bool], feature: str = "MeanBP") -> list[list]:
+    """A continue_while path over the recorded values of ``run_id``: box s holds on hour s
+    iff holds[s-1] (threshold 1 below / above the recorded value, op '>')."""
+    want = expected(run_id)[1]
+    return [[feature, ">", want[s][feature] + (-1.0 if h else 1.0)] for s, h in enumerate(holds)]
+
+
+def test_depth_truncation_stops_the_hour_loop_where_no_path_holds(worker):
+    """The engine simulates only the hours some continue_while path still needs; the answer
+    passes the caller's check of the same rule; a later request continues from the saved
+    state, so truncation loses no prefix."""
+    run = "P1-S2"
+    want = expected(run)[1]
+    units = {f.name: f.unit for f in FEATURE_TABLE}
+    cases = [  # paths -> hours the engine must simulate
+        ([_path(run, [True, False, True])], 2),  # left the path at hour 2
+        ([_path(run, [False, True, True]), _path(run, [True, True, False])], 3),
+        ([_path(run, [True, True, True])], 4),  # still inside: the run is whole
+    ]
+    for paths, n in cases:
+        w = PulseWorker(state_cache=worker.state_cache, data_root=str(DATA_ROOT))
+        before = fake_engine.CALLS["advance_hours"]
+        res = w.simulate({**request(run), "continue_while": paths})
+        assert fake_engine.CALLS["advance_hours"] - before == n
+        assert res["status"] == "ok"
+        assert_hours_equal(res["hours"], want[:n])
+        assert res.get("truncated", False) is (n < 4)
+        assert (w.stats.truncated_runs, w.stats.truncated_hours) == (int(n < 4), 4 - n)
+        msg = {"op": "result", "id": run, **res}
+        checked = check_result(msg, run, 4, FEATURES, units, FEATURES, paths)
+        assert checked.values.shape == (n, len(FEATURES))
+        if n == 2:  # the rest of the run continues from the saved hour-2 state
+            before = fake_engine.CALLS["advance_hours"]
+            rest = w.simulate(request(run))
+            assert fake_engine.CALLS["advance_hours"] - before == 2
+            assert_hours_equal(rest["hours"], want)
+            assert "2 by depth truncation in 1 runs" in w.report()
+            # a prefix already simulated is answered whole, at no cost
+            again = w.simulate({**request(run), "continue_while": paths})
+            assert len(again["hours"]) == 4 and "truncated" not in again
+            assert fake_engine.CALLS["advance_hours"] - before == 2
+        w.close()
+    # a cached prefix the path has left is not continued
+    w = PulseWorker(state_cache=worker.state_cache, data_root=str(DATA_ROOT))
+    w.simulate(request(run, hours=2))
+    before = fake_engine.CALLS["advance_hours"]
+    res = w.simulate({**request(run), "continue_while": [_path(run, [False, True, True])]})
+    assert len(res["hours"]) == 2 and res["truncated"] is True
+    assert fake_engine.CALLS["advance_hours"] == before
+    w.close()
+
+
+def test_bad_continue_while_is_a_clear_error(worker):
+    with pytest.raises(ContractError, match="continue_while.*box"):
+        worker.simulate({**request("P1-S1"), "continue_while": [[["MeanBP", ">=", 90]]]})
+
+
 def test_irreversible_state_event_stops_the_run_and_keeps_completed_hours(worker, monkeypatch):
     monkeypatch.setenv(fake_engine.IRREVERSIBLE_ENV, "3")
     res = worker.simulate(request("P1-S2"))
@@ -231,7 +289,9 @@ def test_module_imports_without_pulse():
 
 def test_worker_subprocess_over_the_protocol(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)])}
-    lines = [{"op": "hello", "protocol": 1}] + [request(r) for r in RUN_IDS] + [{"op": "shutdown"}]
+    cut = {**request("P1-S3"), "id": "cut", "continue_while": [_path("P1-S3", [False])]}
+    lines = ([{"op": "hello", "protocol": 1}, cut] + [request(r) for r in RUN_IDS]
+             + [{"op": "shutdown"}])
     proc = subprocess.run(
         [sys.executable, "-m", "twinfalsify.pulse.worker", "--state-cache",
          str(tmp_path / "cache"), "--data-root", str(DATA_ROOT)],
@@ -239,16 +299,20 @@ def test_worker_subprocess_over_the_protocol(tmp_path):
         env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
     answers = [json.loads(x) for x in proc.stdout.splitlines()]  # stdout = protocol only
-    hello, results, bye = answers[0], answers[1:-1], answers[-1]
+    hello, cut, results, bye = answers[0], answers[1], answers[2:-1], answers[-1]
+    assert cut["status"] == "ok" and cut["truncated"] is True and len(cut["hours"]) == 1
     assert hello["name"] == "pulse" and hello["version"] == "4.2.0" and hello["protocol"] == 1
     assert [f["name"] for f in hello["features"]] == list(FEATURES)
-    assert hello["capabilities"] == {"save_restore": True, "max_hours": 4}
+    assert hello["capabilities"] == {"save_restore": True, "max_hours": 4, "truncate": True}
     assert bye == {"op": "bye"} and len(results) == len(RUN_IDS)
     for run_id, res in zip(RUN_IDS, results, strict=True):
         status, want = expected(run_id)
         assert res["id"] == run_id and res["status"] == status
         assert_hours_equal(res["hours"], want)
-    assert "simulated 57 engine-hours for 60 requested hours" in proc.stderr
+    # P1-S3's hour 1 was simulated by the truncated request: 57 of 64 requested hours,
+    # 3 saved by depth truncation, 4 by prefix reuse
+    assert ("simulated 57 engine-hours for 64 requested hours (4 saved by prefix reuse, 3 by "
+            "depth truncation in 1 runs)") in proc.stderr
 
 
 def _serve(args: list[str], env: dict, cwd) -> subprocess.CompletedProcess:

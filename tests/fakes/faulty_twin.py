@@ -47,6 +47,12 @@ worker would simulate: it keeps the simulated dose prefixes of the current seed 
 and starts afresh when the seed changes, so a client that does not send an X_0's sequences
 consecutively, in one pool, pays for shared prefixes again.
 
+``--wobble W`` multiplies every non-demographic feature of hour h by 1 + W (-1)^(h + seed),
+so runs cross the B-sets' medians from hour to hour (default 0: the formula above).
+``--truncate`` advertises ``capabilities.truncate`` and stops a good run whose request
+carries ``continue_while`` after the hours some path still needs (``runs.truncation``), as
+the Pulse worker does; ``--engine-hours`` then counts only the hours it kept.
+
 Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
 times around the work), so tests can check parallelism from the twins' own
 timestamps; an answer given inside a simulate_batch of n runs adds ``batch=<n>``.
@@ -63,6 +69,7 @@ from pathlib import Path
 from typing import Any
 
 from twinfalsify.runs.protocol import PROTOCOL_VERSION, ProtocolError, decode, encode
+from twinfalsify.runs.truncation import hours_needed, parse_paths
 from twinfalsify.schema import FEATURE_TABLE, FEATURES
 
 RUN_MODES = (
@@ -74,14 +81,16 @@ DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello")
 
 
-def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int) -> list[dict]:
+def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
+             wobble: float = 0.0) -> list[dict]:
     """The good-run answer: per-hour features (formula in the module docstring)."""
     hours, iv, vaso = [], 0.0, 0.0
     for h, (d_iv, d_vaso) in enumerate(doses, start=1):
         iv += float(d_iv)
         vaso += float(d_vaso)
         shift = 0.001 * (0.5 * h + 0.01 * iv + 10.0 * vaso + 0.001 * (seed % 97))
-        hours.append({f: float(x0[f]) + (0.0 if f in DEMOGRAPHICS else shift)
+        factor = 1.0 + wobble * (-1) ** (h + seed)
+        hours.append({f: float(x0[f]) if f in DEMOGRAPHICS else (float(x0[f]) + shift) * factor
                       for f in FEATURES})
     return hours
 
@@ -141,11 +150,17 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
     t0 = time.time()
     x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
-    hours = expected(x0, doses[:hours_asked], seed)
+    hours = expected(x0, doses[:hours_asked], seed, args.wobble)
+    cut = hours_asked
+    if args.truncate and msg.get("continue_while") is not None and mode == "ok":
+        values = [[h[f] for f in FEATURES] for h in hours]
+        cut = hours_needed(parse_paths(msg["continue_while"]), values, hours_asked)
     if args.engine_hours is not None:
-        _log_engine_hours(args.engine_hours, seed, doses[:hours_asked])
+        _log_engine_hours(args.engine_hours, seed, doses[:cut])
     answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
-                              "message": "", "hours": hours, "clamped": {}}
+                              "message": "", "hours": hours[:cut], "clamped": {}}
+    if cut < hours_asked:
+        answer["truncated"] = True
     if mode == "crash_once":
         if args.state_dir is None:
             raise SystemExit("faulty: crash_once needs --state-dir")
@@ -207,6 +222,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="append the hours a prefix-caching engine would simulate")
     parser.add_argument("--batch", type=int, default=None,
                         help="advertise capabilities.batch = N (runs per simulate_batch)")
+    parser.add_argument("--wobble", type=float, default=0.0,
+                        help="scale hour h's features by 1 + W (-1)^(h + seed)")
+    parser.add_argument("--truncate", action="store_true",
+                        help="advertise capabilities.truncate and stop runs no path needs")
     args = parser.parse_args(argv)
     modes = _parse_modes(args.mode)
     twin_modes = {m for m, _ in modes if m in TWIN_MODES}
@@ -243,6 +262,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 caps["max_hours"] = args.max_hours
             if args.batch is not None:
                 caps["batch"] = args.batch
+            if args.truncate:
+                caps["truncate"] = True
             send({"op": "hello", "ok": True, "name": "faulty", "version": "1",
                   "protocol": 2 if "bad_protocol" in twin_modes else PROTOCOL_VERSION,
                   "features": feats, "capabilities": caps})

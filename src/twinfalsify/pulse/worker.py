@@ -26,10 +26,15 @@ Per ``simulate`` request (see runs/protocol.py):
    ``initialize_engine`` returning False -> "init_failed" with the engine log's
    [ERROR] lines. Hours completed before a failure are returned.
 
+Depth truncation (capability ``truncate``, docs/twin-protocol.md): a request carrying
+``continue_while`` box paths stops after the first completed hour on which no path holds any
+more (``runs.truncation.hours_needed``) and answers status ok with the hours it has and
+``"truncated": true``; a prefix already simulated is returned whole (it costs nothing).
+
 Prefix reuse: within one process, the engine state after every dose prefix of
 the current X_0 is saved (binary save/load ~10 ms on real Pulse), so runs
 sharing a prefix simulate it once; the runner sends runs with the same X_0
-consecutively. Simulated vs requested hours are reported on stderr at shutdown.
+consecutively. Simulated, requested and truncated hours are reported on stderr at shutdown.
 Pulse is deterministic: ``seed`` is accepted and ignored.
 """
 
@@ -62,7 +67,8 @@ from twinfalsify.pulse.units import (
     to_study_features,
 )
 from twinfalsify.runs import protocol
-from twinfalsify.schema import FEATURE_TABLE, T_MAX, ContractError
+from twinfalsify.runs.truncation import Box, hours_needed, parse_paths
+from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, ContractError
 
 # Folders of a Pulse data root (the install's bin/). Real Pulse 4.2 started with a data root
 # lacking them logs "Unable to find substance directory" and then dies with SIGSEGV inside
@@ -112,6 +118,8 @@ class _Stats:
     stabilisations: int = 0
     stable_cache_hits: int = 0
     runs: int = 0
+    truncated_runs: int = 0
+    truncated_hours: int = 0  # requested hours not simulated because no path needed them
     by_status: dict[str, int] = field(default_factory=dict)
 
 
@@ -177,7 +185,7 @@ class PulseWorker:
         self.check_ready()
         return {"name": "pulse", "version": self.version(),
                 "features": [{"name": f.name, "unit": f.unit} for f in FEATURE_TABLE],
-                "capabilities": {"save_restore": True, "max_hours": T_MAX}}
+                "capabilities": {"save_restore": True, "max_hours": T_MAX, "truncate": True}}
 
     def _unit(self, text: str):
         U = self.api().U
@@ -316,7 +324,7 @@ class PulseWorker:
     # ------------------------------------------------------------------ simulate
     def simulate(self, request: dict[str, Any]) -> dict[str, Any]:
         """One protocol ``simulate`` request -> the result fields (see module docstring)."""
-        x0, doses, hours = _parse_request(request)
+        x0, doses, hours, paths = _parse_request(request)
         self.check_ready()  # never start an engine that would crash on a bad data root
         height = x0.get("height_cm")  # optional extension: a known height (recorded patients)
         patient, clamped = clamp_x0(x0, self.init_limits, height_cm=height)
@@ -325,13 +333,16 @@ class PulseWorker:
             self._reset_prefixes(key)
         self.stats.requested_hours += hours
         self.stats.runs += 1
-        result = self._run(patient, x0, doses[:hours], key)
+        result = self._run(patient, x0, doses[:hours], key, paths)
         result["clamped"] = clamped
+        if result.get("truncated"):
+            self.stats.truncated_runs += 1
+            self.stats.truncated_hours += hours - len(result["hours"])
         self.stats.by_status[result["status"]] = self.stats.by_status.get(result["status"], 0) + 1
         return result
 
     def _run(self, p: PatientInit, x0: dict, doses: list[tuple[float, float]],
-             key: str) -> dict[str, Any]:
+             key: str, paths: list[list[Box]] | None = None) -> dict[str, Any]:
         # Longest simulated prefix of this dose sequence.
         s = len(doses)
         while s > 0 and tuple(doses[:s]) not in self._nodes:
@@ -349,6 +360,8 @@ class PulseWorker:
         hours_out = list(node.hours)
         if s == len(doses):
             return {"status": "ok", "message": "", "hours": hours_out}
+        if not _still_needed(paths, hours_out, len(doses)):
+            return {"status": "ok", "message": "", "hours": hours_out, "truncated": True}
         if self._live and self._live[1] == tuple(doses[:s]):
             engine = self._live[0]
         else:
@@ -387,6 +400,9 @@ class PulseWorker:
                 raise RuntimeError(f"Pulse could not save the state after hour {h} to {state}")
             self._nodes[prefix] = _Node(state, list(hours_out))
             prev = dose
+            if h < len(doses) and not _still_needed(paths, hours_out, len(doses)):
+                self._live = (engine, prefix)
+                return {"status": "ok", "message": "", "hours": hours_out, "truncated": True}
         self._live = (engine, tuple(doses))
         return {"status": "ok", "message": "", "hours": hours_out}
 
@@ -400,10 +416,11 @@ class PulseWorker:
 
     def report(self) -> str:
         st = self.stats
-        saved = st.requested_hours - st.simulated_hours
+        saved = st.requested_hours - st.simulated_hours - st.truncated_hours
         return (f"pulse_worker: {st.runs} runs {st.by_status}; simulated {st.simulated_hours} "
                 f"engine-hours for {st.requested_hours} requested hours ({saved} saved by prefix "
-                f"reuse); {st.stabilisations} stabilisations, {st.stable_cache_hits} "
+                f"reuse, {st.truncated_hours} by depth truncation in {st.truncated_runs} runs); "
+                f"{st.stabilisations} stabilisations, {st.stable_cache_hits} "
                 "stabilised-state cache hits")
 
     def close(self) -> None:
@@ -428,7 +445,18 @@ def _event_names(events: Any) -> set[str]:
     return {getattr(k, "name", str(k)).split(".")[-1] for k in events}
 
 
-def _parse_request(req: dict[str, Any]) -> tuple[dict, list[tuple[float, float]], int]:
+def _still_needed(paths: list[list[Box]] | None, hours_out: list[dict[str, float]],
+                  total: int) -> bool:
+    """Whether hour len(hours_out) + 1 of a run of ``total`` hours is still needed by some
+    ``continue_while`` path (always, without paths)."""
+    if paths is None:
+        return True
+    values = [[h[f] for f in FEATURES] for h in hours_out]
+    return hours_needed(paths, values, total) > len(hours_out)
+
+
+def _parse_request(req: dict[str, Any]
+                   ) -> tuple[dict, list[tuple[float, float]], int, list[list[Box]] | None]:
     x0 = req.get("x0")
     if not isinstance(x0, dict):
         raise ContractError("simulate request: key x0 must be an object {feature: value}")
@@ -446,7 +474,13 @@ def _parse_request(req: dict[str, Any]) -> tuple[dict, list[tuple[float, float]]
         if not (math.isfinite(iv) and math.isfinite(vaso) and iv >= 0 and vaso >= 0):
             raise ContractError(f"simulate request: doses[{i}] = {d!r} must be finite and >= 0")
         out.append((iv, vaso))
-    return x0, out, hours
+    paths = req.get("continue_while")
+    if paths is not None:
+        try:
+            paths = parse_paths(paths)
+        except ValueError as exc:
+            raise ContractError(f"simulate request: {exc}") from None
+    return x0, out, hours, paths
 
 
 def main(argv: Sequence[str] | None = None) -> int:
