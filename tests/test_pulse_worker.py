@@ -359,9 +359,14 @@ def test_runner_stops_at_once_on_a_refused_hello(tmp_path):
     from twinfalsify.runs.runner import simulate_via_protocol
 
     x0 = pd.DataFrame([{f: 1.0 for f in FEATURES}])
-    env = {"PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)]), "PULSE_DATA_ROOT": str(tmp_path)}
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {"PYTHONPATH": os.pathsep.join([str(SRC), str(FAKES)]), "PULSE_DATA_ROOT": str(tmp_path),
+           "TMPDIR": str(tmp)}
     with pytest.raises(ContractError, match="PULSE_DATA_ROOT") as err:
         simulate_via_protocol([sys.executable, "-m", "twinfalsify.pulse.worker"], x0,
                               np.zeros((1, 1, 2)), np.array([1], dtype=np.uint64), env=env,
                               progress=False)
     assert "\n" not in str(err.value).split("; stderr tail")[0]
+    # the killed worker's temporary folder (prefix states) went with the runner's scratch
+    assert list(tmp.iterdir()) == []

@@ -37,6 +37,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter, deque
@@ -672,6 +673,9 @@ def simulate_via_protocol(
     workers had to be restarted more than ``max_restarts`` times before any run was ok;
     0 turns a check off. After the first ok run neither check acts.
 
+    Each worker gets TMPDIR = a folder of this call, removed when it returns, so
+    temporary files of workers that had to be killed do not outlive it.
+
     continue_while: per run, the box paths of ``runs.truncation`` (send only to a twin
     whose hello advertises ``capabilities.truncate``): a run may come back truncated,
     status ok with NaN after its last needed hour. (Values are checked
@@ -699,6 +703,11 @@ def simulate_via_protocol(
 
     if continue_while is not None and len(continue_while) != n:
         raise ContractError(f"continue_while holds {len(continue_while)} runs, expected {n}")
+    # Workers killed on a timeout or a refused hello cannot clean up after themselves (the
+    # Pulse worker keeps its prefix states in a temporary folder): their TMPDIR is ours.
+    base_env = full_env if full_env is not None else os.environ
+    scratch = tempfile.mkdtemp(prefix="twinfalsify-workers-", dir=base_env.get("TMPDIR"))
+    full_env = {**base_env, "TMPDIR": scratch}
     pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
                  int(batch_size), int(fail_fast_runs), int(max_restarts), continue_while)
     groups = plan_groups(seeds, doses)
@@ -731,6 +740,7 @@ def simulate_via_protocol(
                 th.join(timeout=SHUTDOWN_GRACE_S + 1)
             pool.kill_all()  # a worker a thread started while we were stopping
         restore_sigterm()
+        shutil.rmtree(scratch, ignore_errors=True)
     if pool.error is not None:
         raise pool.error
     missing = np.flatnonzero(pool.status == "")
