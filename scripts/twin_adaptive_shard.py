@@ -9,7 +9,7 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import ActionBins, StateBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
-from twinfalsify.runs.adaptive import run_adaptive_shard  # noqa: E402
+from twinfalsify.runs.adaptive import budget_warning, run_adaptive_shard  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, x0_frame  # noqa: E402
 from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
@@ -53,6 +53,9 @@ def main(sm):
         log=_Log(),
     )
     log.info("shard %s: %s", sm.wildcards.shard, summary)
+    warning = budget_warning(summary)
+    if warning:
+        log.warning("WARNING: %s", warning)
     write_parquet(rows, sm.output.runs)
     write_parquet(decisions, sm.output.decisions)
     write_json(summary, sm.output.summary)

@@ -17,7 +17,7 @@ from twinfalsify import bounds
 from twinfalsify.design import WHOLE_SPACE
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
 from twinfalsify.runs import plan as tp
-from twinfalsify.runs.adaptive import run_adaptive_shard, shard_hypotheses
+from twinfalsify.runs.adaptive import budget_warning, run_adaptive_shard, shard_hypotheses
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES
@@ -122,6 +122,26 @@ def test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes(study_a
         got[truncate] = (node_runs, pd.concat(decisions, ignore_index=True))
     assert got[True][0] < got[False][0]  # runs that left every B-set were cut short
     pd.testing.assert_frame_equal(got[True][1], got[False][1])  # decisions unchanged
+
+
+def test_a_budget_too_small_to_reject_spends_no_twin_time_and_says_so(study_and_twin):
+    """Four runs per sequence cannot reach Holm's level: every parameter set is futile before
+    any run, no twin hour is spent, and the shard's log line names the setting to raise. The
+    fixture's budget (300) can test, and gets no warning."""
+    study, twin = study_and_twin[:2]
+    small = build_study(1500, 11, d0_fraction=0.2, min_support=5, runs=4)
+    _, dec, summary = run_adaptive_shard(
+        twin, small.plan, 0, small.x0, small.actions, small.hyps, small.obs, small.states,
+        batch_size=2, log=io.StringIO())
+    assert summary["twin_hours_adaptive"] == 0 and (dec["runs_used"] == 0).all()
+    assert summary["futile_without_runs"] == summary["parameter_sets"] > 0
+    msg = budget_warning(summary)
+    assert "no outcome of 4 runs per sequence" in msg and "runs_per_sequence" in msg
+    _, _, big = run_adaptive_shard(
+        twin, study.plan, 0, study.x0, study.actions, study.hyps, study.obs, study.states,
+        batch_size=100, log=io.StringIO())
+    assert big["twin_hours_adaptive"] > 0
+    assert big["futile_without_runs"] < big["parameter_sets"] and budget_warning(big) is None
 
 
 def test_simulate_jobs_keeps_one_result_per_job_in_order(study_and_twin):

@@ -28,7 +28,11 @@ import pandas as pd
 from twinfalsify.bounds import ObservationalSide, TwinNodes
 from twinfalsify.design import ActionBins, StateBins
 from twinfalsify.inference.sequential import (
+    CURTAILED,
+    FUTILE,
     HOLM_AWARE,
+    REJECTED,
+    UNDECIDED,
     SequentialState,
     embed_runs,
     family_sizes,
@@ -43,7 +47,8 @@ from twinfalsify.runs.truncation import JobBoxes
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
 from twinfalsify.twins.base import Twin
 
-DECISION_NAMES = {0: "undecided", 1: "rejected", 2: "futile", 3: "curtailed"}
+DECISION_NAMES = {UNDECIDED: "undecided", REJECTED: "rejected", FUTILE: "futile",
+                  CURTAILED: "curtailed"}
 DECISION_COLUMNS = (
     "hyp_id", "stop_batch", "runs_used", "decision_lo", "decision_up", "p_lo", "p_up",
     "nhat", "n_failed",
@@ -220,6 +225,10 @@ def run_adaptive_shard(
         "twin_hours_requested": requested,
         "runs_saved": fixed - len(rows),
         "depth_truncation": truncate,
+        # parameter sets decided futile on both sides before any run: no outcome of the
+        # budget could reach the level (all of them = the budget is too small to test)
+        "futile_without_runs": int(((st.side[idx] == FUTILE).all(axis=1)
+                                    & (used[idx] == 0)).sum()),
         "decisions": {
             side: pd.Series(dec[f"decision_{side}"]).value_counts().to_dict()
             for side in ("lo", "up")
@@ -230,6 +239,18 @@ def run_adaptive_shard(
             f"adaptive shard {shard}: {len(rows)} node rows but {per_node.sum()} node-runs "
             "revealed: accounting broken")
     return rows, dec.loc[:, list(DECISION_COLUMNS)], summary
+
+
+def budget_warning(summary: dict) -> str | None:
+    """One line for the shard's log when every parameter set was futile before any twin run
+    (the budget cannot reject anything at the configured level), else None."""
+    n = summary["parameter_sets"]
+    if n == 0 or summary["futile_without_runs"] < n:
+        return None
+    return (f"shard {summary['shard']}: all {n} parameter sets were futile before any twin run: "
+            f"no outcome of {summary['budget']} runs per sequence can reach the test level, so "
+            "no twin time was spent and nothing can be rejected; raise "
+            "twin_runs.runs_per_sequence to test these hypotheses")
 
 
 def load_simulated(rows: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNodes:
