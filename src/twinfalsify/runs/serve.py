@@ -109,7 +109,7 @@ def _simulate_parsed(twin: Twin, parsed: list[Parsed]) -> list[dict[str, Any]]:
         rows = values[k][: done[k]]
         cut = hours
         if p[4] is not None and res.status[k] == "ok" and len(rows) == hours:
-            cut = hours_needed(p[4], np.asarray(rows), hours)
+            cut = hours_needed(p[4], rows, hours)
         fields = _fields(rows[:cut], res.status[k], res.message[k], res.clamped[k], cut)
         if cut < hours:
             fields["truncated"] = True

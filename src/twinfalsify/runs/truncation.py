@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from twinfalsify.design import WHOLE_SPACE
 from twinfalsify.schema import FEATURES
 
 OPS = (">", "<=", "any")  # "any": the bin is the whole space (always holds)
@@ -44,18 +45,19 @@ def parse_paths(value: Any) -> list[list[Box]]:
     return out
 
 
-def hours_needed(paths: Sequence[Sequence[Box]], values: np.ndarray, hours: int,
+def hours_needed(paths: Sequence[Sequence[Box]], values: np.ndarray | Sequence, hours: int,
                  columns: Sequence[str] = FEATURES) -> int:
     """Hours 1..n of a run that some path still needs, given its completed hours
     ``values`` ((s, len(columns)), ``columns`` order): n = 1 + the longest run of leading
     boxes of any path that hold, at most ``hours``. An hour not completed yet counts as
     holding nothing, so the result never exceeds len(values) + 1."""
+    col = {c: i for i, c in enumerate(columns)}
     best = 0
     for path in paths:
         k = 0
         while k < min(len(path), len(values)):
             name, op, thr = path[k]
-            v = values[k][list(columns).index(name)]
+            v = values[k][col[name]]
             if not (op == "any" or (v > thr if op == ">" else v <= thr)):
                 break
             k += 1
@@ -68,8 +70,6 @@ def box_paths(bins: Sequence[int], outcome: str, base: int, medians: Sequence[fl
     """The box path of a hypothesis of depth t = len(bins) - 1 for a run whose X_0 has base
     code ``base`` (``design.StateBins``): boxes for hours 1..t-1 as protocol JSON, or None
     when some bin can never hold for this base (the run cannot enter)."""
-    from twinfalsify.design import WHOLE_SPACE
-
     path = []
     for s in range(1, len(bins) - 1):
         b = int(bins[s])
