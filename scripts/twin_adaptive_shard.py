@@ -50,6 +50,7 @@ def main(sm):
         correction=str(testing.get("correction", "holm")),
         curtail=float(runs_cfg.get("curtail", 0.0)),
         combine=str(runs_cfg.get("combine", "union")),
+        failed_runs=str(testing.get("failed_runs", "conservative")),
         log=_Log(),
     )
     log.info("shard %s: %s", sm.wildcards.shard, summary)

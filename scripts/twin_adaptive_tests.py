@@ -39,6 +39,7 @@ def main(sm):
     results = adaptive_results(
         hyps, obs, nodes, StateBins.from_json(read_json(sm.input.bins)), decisions,
         alpha=float(testing.get("alpha", 0.05)), correction=testing.get("correction", "holm"),
+        failed_runs=str(testing.get("failed_runs", "conservative")),
     )
     hours_a = sum(s["twin_hours_adaptive"] for s in summaries)
     hours_f = sum(s["twin_hours_fixed"] for s in summaries)

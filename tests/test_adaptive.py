@@ -17,10 +17,16 @@ from twinfalsify import bounds
 from twinfalsify.design import WHOLE_SPACE
 from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
 from twinfalsify.runs import plan as tp
-from twinfalsify.runs.adaptive import budget_warning, run_adaptive_shard, shard_hypotheses
+from twinfalsify.runs.adaptive import (
+    adaptive_results,
+    budget_warning,
+    run_adaptive_shard,
+    shard_hypotheses,
+)
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES
+from twinfalsify.twins.base import SimResult
 
 
 @pytest.fixture(scope="module")
@@ -216,3 +222,53 @@ def test_depth_truncation_drops_only_hours_no_hypothesis_can_use(study_and_twin)
         dec = pd.concat(decs).set_index("hyp_id").loc[hyps["hyp_id"]]
         np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
         np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)
+
+
+class _Flaky:
+    """The wrapped twin, with every run whose seed is 0 mod 3 failed (status error, no hours)."""
+
+    def __init__(self, twin):
+        self.twin, self.name = twin, "flaky"
+
+    def simulate(self, x0, doses, seeds):
+        res = self.twin.simulate(x0, doses, seeds)
+        bad = np.asarray(seeds, np.uint64) % np.uint64(3) == 0
+        res.features[bad] = np.nan
+        return SimResult(res.features, np.where(bad, "error", res.status), res.message,
+                         res.clamped)
+
+
+@pytest.mark.slow
+def test_failed_runs_are_worst_case_in_the_shards_as_in_memory(study_and_twin):
+    """``testing.failed_runs`` reaches the shards: with failing runs, conservative and drop
+    shards each reproduce the in-memory procedure, conservative p-values are the larger ones
+    (the same runs decide: the stops may differ), and the results table says which was used."""
+    study, twin, _, _ = study_and_twin
+    flaky = _Flaky(twin)
+    fixed = pd.concat([tp.run_shard(flaky, study.plan, k, study.x0, study.actions,
+                                    log=io.StringIO()) for k in range(len(study.plan.shards))],
+                      ignore_index=True)
+    nodes = tp.load_nodes(fixed, study.plan, study.x0)
+    shard_of = np.zeros(len(study.hyps), np.int64)
+    for k in range(len(study.plan.shards)):
+        shard_of[shard_hypotheses(study.hyps, study.plan, k)] = k
+    got = {}
+    for mode in ("conservative", "drop"):
+        ref = adaptive_test(study.hyps, study.obs, nodes, study.states, batch_size=40,
+                            shards=shard_of, failed_runs=mode)
+        decs = [run_adaptive_shard(flaky, study.plan, k, study.x0, study.actions, study.hyps,
+                                   study.obs, study.states, batch_size=40, failed_runs=mode,
+                                   log=io.StringIO())[1] for k in range(len(study.plan.shards))]
+        dec = pd.concat(decs).set_index("hyp_id").loc[study.hyps["hyp_id"]]
+        np.testing.assert_allclose(dec["p_lo"], ref.p_lo, rtol=1e-12)
+        np.testing.assert_allclose(dec["p_up"], ref.p_up, rtol=1e-12)
+        np.testing.assert_array_equal(dec["runs_used"], ref.runs_per_hypothesis)
+        assert dec["n_failed"].sum() > 0
+        res = adaptive_results(study.hyps, study.obs, nodes, study.states, dec.reset_index(),
+                               failed_runs=mode)
+        assert set(res["failed_runs"]) == {mode}
+        got[mode] = ref
+    cons, drop = got["conservative"], got["drop"]
+    assert (cons.p_lo > drop.p_lo * 1.01).any() or (cons.p_up > drop.p_up * 1.01).any()
+    n_rejected = {k: (o.rejected_lo | o.rejected_up).sum() for k, o in got.items()}
+    assert n_rejected["conservative"] <= n_rejected["drop"]

@@ -35,6 +35,7 @@ def test_adaptive_results_account_for_every_run(study):
     res = pd.read_parquet(r / "twins" / "biased" / "results.parquet")
     hyps = pd.read_parquet(r / "design" / "hypotheses.parquet")
     assert set(res["method"]) == {"betting_sequential"}
+    assert set(res["failed_runs"]) == {"conservative"}  # the schema's default reaches the test
     assert len(res) == 2 * len(hyps) and set(res["hyp_id"]) == set(hyps["hyp_id"])
     assert res["p_value"].between(0, 1).all()
     assert set(res["decision"]) <= {"rejected", "futile", "undecided"}

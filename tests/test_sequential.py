@@ -221,3 +221,92 @@ def test_curtailment_forgoes_few_rejections_the_full_budget_makes(eps, most_lost
     assert win.sum() > 300 and (cur.side[:, 0] == CURTAILED).sum() > 100  # both act
     assert lost.sum() <= most_lost * win.sum(), (lost.sum(), win.sum())
     assert cur.runs_used().mean() < 0.5 * m  # and it does save runs
+
+
+def _failing_world(h: int, m: int, q_lo: float, rng: np.random.Generator, fail_above: float,
+                   fail_prob: float):
+    """``_world`` at the null boundary (twin mean = Q_lo over *all* entering runs), where a run
+    whose outcome would exceed ``fail_above`` fails with probability ``fail_prob``: failures
+    that depend on the outcome, so the successful runs alone understate the twin mean."""
+    hyps, obs, _ = _world(h, 300, m, q_lo, q_lo, 1.0, rng)
+    enter = rng.random((h, m)) < 0.8
+    hh, ii = np.nonzero(enter)
+    vals = rng.beta(4 * q_lo, 4 * (1 - q_lo), len(hh))
+    fail = (vals > fail_above) & (rng.random(len(hh)) < fail_prob)
+    failed = np.zeros((h, m), bool)
+    failed[hh[fail], ii[fail]] = True
+    ok = ~fail
+    sizes = np.bincount(hh[ok], minlength=h)
+    runs = TwinRuns(Ragged(vals[ok], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)),
+                    ii[ok].astype(np.int64), np.ones((h, m), bool), failed)
+    return hyps, obs, runs
+
+
+def test_conservative_capital_bets_the_next_runs_bet_on_each_failed_run_at_the_worst_value():
+    """Brute force, run by run: a failed run multiplies K- by 1 - min(lambda, c/(1-m)) (1 - m)
+    (K+ by 1 - min(lambda, c/m) m), lambda being the bet the next successful run would get
+    (read from the successful runs before it); a successful run as in the drop capital."""
+    rng = np.random.default_rng(11)
+    hyps, obs, runs = _failing_world(6, 120, 0.4, rng, fail_above=0.5, fail_prob=0.5)
+    runs.failed[0] = False  # a hypothesis without failures: its capital is the drop one
+    st = SequentialState(hyps, obs, None, budget=120, batch_size=10, n_family=np.full(6, 20))
+    groups, upto = np.arange(6), np.full(6, 90)  # failures after the last revealed run too
+    sides, nhat = st._twin_prefix(runs, upto, groups)
+    drop = SequentialState(hyps, obs, None, budget=120, batch_size=10, n_family=np.full(6, 20),
+                           failed_runs="drop")._twin_prefix(runs, upto, groups)[0]
+    c, d0 = 0.9, st.delta0[0]
+    for m in (0.2, 0.45, 0.7):
+        mm = np.full(6, m)
+        got_lo = log_capital(sides.lo, mm, -1, False)
+        got_up = log_capital(sides.up, mm, +1, False)
+        for g in groups:
+            succ, lo, up = [], 0.0, 0.0
+            pos = runs.run[runs.values.offsets[g]:runs.values.offsets[g + 1]]
+            vals = runs.values.group(g)
+            for j in range(90):
+                lam = cs_bets(np.array([*succ, 0.5]), np.array([0, len(succ) + 1]),
+                              np.array([d0]))[-1]
+                b_lo, b_up = min(lam, c / (1 - m)), min(lam, c / m)
+                if runs.failed[g, j]:
+                    lo += np.log1p(-b_lo * (1 - m))
+                    up += np.log1p(-b_up * m)
+                elif j in pos:
+                    x = vals[np.flatnonzero(pos == j)[0]]
+                    lo += np.log1p(-b_lo * (x - m))
+                    up += np.log1p(b_up * (x - m))
+                    succ.append(x)
+            assert got_lo[g] == pytest.approx(lo, abs=1e-10)
+            assert got_up[g] == pytest.approx(up, abs=1e-10)
+        # worst case never helps rejection; without failures it is the drop capital exactly
+        assert np.all(got_lo <= log_capital(drop.lo, mm, -1, False) + 1e-12)
+        assert got_lo[0] == log_capital(drop.lo, mm, -1, False)[0]
+    assert runs.failed[1:, :90].any() and np.array_equal(nhat, drop.succ.sizes)
+
+
+@pytest.mark.parametrize(("combine", "curtail"), [("union", 0.0), ("product", 0.2)])
+def test_conservative_failures_keep_p_values_valid_when_failures_depend_on_the_outcome(combine,
+                                                                                       curtail):
+    """Twin mean = Q_lo over all entering runs, but high outcomes tend to fail: dropping the
+    failures rejects the true H_lo far too often; the conservative capital stays valid, at
+    data-dependent stops, and on the same data its p-value is never below the drop one."""
+    rng = np.random.default_rng(12)
+    h = 2000
+    hyps, obs, runs = _failing_world(h, 400, 0.4, rng, fail_above=0.5, fail_prob=0.5)
+    p, p_at_budget = {}, {}
+    for mode in ("drop", "conservative"):
+        st = SequentialState(hyps, obs, None, budget=400, batch_size=25, n_family=np.full(h, 20),
+                             combine=combine, failed_runs=mode, curtail=curtail)
+        run_to_stop(st, runs)
+        p[mode] = st.p_values(runs)[0]
+        if combine == "union":  # (the product rule's is slow; its capitals: brute force above)
+            # the same data for both (the stops above differ): one batch of the whole budget
+            st = _state(hyps, obs, runs, 400, 400, n_family=np.full(h, 20), failed_runs=mode,
+                        holm_aware=False)
+            p_at_budget[mode] = st.p_values(runs)[0]
+    if p_at_budget:  # (to the union crossing's tolerance, 1e-3 on log K*)
+        assert np.all(p_at_budget["conservative"] >= p_at_budget["drop"] * (1 - 1.1e-3))
+        assert (p_at_budget["conservative"] > 1.5 * p_at_budget["drop"]).mean() > 0.5
+    for a in (0.05, 0.2, 0.5):
+        se = 3 * np.sqrt(a * (1 - a) / h)
+        assert (p["conservative"] <= a).mean() <= a + se, a
+    assert (p["drop"] <= 0.05).mean() > 0.05 + 3 * np.sqrt(0.05 * 0.95 / h)  # teeth

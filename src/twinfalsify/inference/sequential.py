@@ -48,6 +48,20 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
 family-wise error stays controlled: docs/sequential.md.
+
+Failed twin runs (``failed_runs``; a run whose X_0 lies in B_0 and whose path failed before
+it could be seen to leave B_1:t). ``drop`` leaves them out (the paper). ``conservative`` (the
+default, as in the fixed scheme) rejects only what would be rejected whatever they would have
+produced: let every bet be computed from the successful entering runs only (the plug-in
+estimates and the index i count those; still predictable). A failed run would have either not
+entered (factor 1) or entered with some x in [0, 1], factor 1 - lambda (x - m) >=
+1 - lambda (1 - m) for K-. So K-_cons, which puts the factor 1 - lambda (1 - m) at every failed
+run, is at most the capital K-_true of the true completion with those same bets, at every time
+and every m; K-_true is a test supermartingale under the null (the completed runs are i.i.d.
+across X_0; failures may depend on anything, e.g. on the outcome), so Ville's inequality holds
+for K-_true and a fortiori for K-_cons: the p-values stay valid under informative failures.
+K+ mirrors it with x = 0. Without failures K_cons is the drop capital exactly; with them it is
+never larger, so conservative p >= drop p.
 """
 
 from __future__ import annotations
@@ -85,6 +99,7 @@ from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
 UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
+FAILED_RUNS = ("conservative", "drop")  # failed twin runs: worst case or left out (doc)
 HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
 COMBINES = ("union", "product")  # how the observational and twin capitals combine (doc)
 
@@ -103,6 +118,29 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
     return np.sqrt(k / prev)
+
+
+@dataclass(frozen=True)
+class TwinSides:
+    """The twin sample of each group at one time, as the rules read it.
+
+    ``succ``: the successful entering runs with their CS bets (the plug-in estimates and the
+    future-bet bound read these). ``lo`` / ``up``: the sides H_lo / H_up are tested on. With
+    ``failed_runs: drop`` both are ``succ``; with ``conservative`` each failed run sits at its
+    place in X_0 order at the value least favourable to rejection (x = 1 for H_lo, whose K-
+    it lowers most; x = 0 for H_up), with the bet the next successful run would get. Why that
+    is valid whatever the failed runs would have produced: module doc.
+    """
+
+    succ: OrderedSide
+    lo: OrderedSide
+    up: OrderedSide
+
+    def take(self, groups: np.ndarray) -> TwinSides:
+        if self.lo is self.succ and self.up is self.succ:
+            one = self.succ.take(groups)
+            return TwinSides(one, one, one)
+        return TwinSides(self.succ.take(groups), self.lo.take(groups), self.up.take(groups))
 
 
 @dataclass(frozen=True)
@@ -231,6 +269,8 @@ class SequentialState:
     curtail: float = 0.0
     # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in)
     combine: str = "union"
+    # failed twin runs: "conservative" (worst case, module doc) or "drop" (left out)
+    failed_runs: str = "conservative"
     grid_cells: int = GRID_CELLS  # product only: bet cells of the exact inf over m
     grid_sub: int = SUB_STEPS  # product only: twin sub-steps per bet cell
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
@@ -246,6 +286,9 @@ class SequentialState:
         if self.combine not in COMBINES:
             raise ValueError(f"sequential: combine must be one of {', '.join(COMBINES)}, "
                              f"got {self.combine!r}")
+        if self.failed_runs not in FAILED_RUNS:
+            raise ValueError(f"sequential: failed_runs must be one of {', '.join(FAILED_RUNS)}, "
+                             f"got {self.failed_runs!r}")
         nf = family_sizes(self.hyps) if self.n_family is None else np.asarray(self.n_family)
         self.n_family = np.broadcast_to(nf, (h,)).astype(np.int64)
         self.a_star = self.alpha / self.n_family  # most stringent Holm threshold
@@ -311,18 +354,40 @@ class SequentialState:
         return min(b * self.batch_size, self.budget)
 
     def _twin_prefix(self, runs: TwinRuns, upto: np.ndarray, groups: np.ndarray
-                     ) -> tuple[OrderedSide, np.ndarray]:
-        """Ordered twin sides (CS bets) of ``groups`` with runs < upto[group]; and nhat."""
+                     ) -> tuple[TwinSides, np.ndarray]:
+        """:class:`TwinSides` of ``groups`` (sorted) with runs < upto[group]; and nhat."""
         v = runs.values
         gid = v.group_ids()
         sel = np.isin(gid, groups) & (runs.run < upto[gid])
         g = gid[sel]
-        sizes = np.bincount(np.searchsorted(groups, g), minlength=len(groups))
+        gi = np.searchsorted(groups, g)
+        sizes = np.bincount(gi, minlength=len(groups))
         offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         x = (np.clip(v.values[sel], self.y_lo[g], self.y_up[g]) - self.y_lo[g]) / (
             self.y_up[g] - self.y_lo[g])
-        lam = cs_bets(x, offs, self.delta0[groups], self.c)
-        return OrderedSide(x, lam, offs), sizes
+        m = runs.failed.shape[1]
+        fail = (runs.failed[groups] & (np.arange(m)[None, :] < upto[groups][:, None])
+                if self.failed_runs == "conservative" else np.zeros((0, 0), bool))
+        fg, fj = np.nonzero(fail)  # group position, run: sorted by group, then run
+        if len(fg) == 0:
+            succ = OrderedSide(x, cs_bets(x, offs, self.delta0[groups], self.c), offs)
+            return TwinSides(succ, succ, succ), sizes
+        # one extra slot per group: the bet a next successful run would get (it reads only
+        # the values before it), for failed runs after the group's last successful one
+        offs_ext = offs + np.arange(len(groups) + 1)
+        lam_ext = cs_bets(np.insert(x, offs[1:], 0.5), offs_ext, self.delta0[groups], self.c)
+        lam = np.delete(lam_ext, offs_ext[1:] - 1)
+        key_s = gi * (m + 1) + runs.run[sel]  # ascending: groups sorted, runs sorted within
+        key_f = fg * (m + 1) + fj
+        k = np.searchsorted(key_s, key_f)  # successful runs before each failed one (global)
+        lam_f = lam_ext[k + fg]
+        order = np.argsort(np.concatenate([key_s, key_f]), kind="stable")
+        offs_all = np.concatenate(
+            [[0], np.cumsum(sizes + np.bincount(fg, minlength=len(groups)))]).astype(np.int64)
+        lam_all = np.concatenate([lam, lam_f])[order]
+        worst = (OrderedSide(np.concatenate([x, np.full(len(fg), w)])[order], lam_all, offs_all)
+                 for w in (1.0, 0.0))
+        return TwinSides(OrderedSide(x, lam, offs), *worst), sizes
 
     def update(self, runs: TwinRuns, b: int) -> None:
         """Decide with the first ``revealed(b)`` runs of every still-active hypothesis."""
@@ -334,7 +399,7 @@ class SequentialState:
         tw, nhat = self._twin_prefix(runs, upto, act)
         und = self.side[act] == UNDECIDED
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)  # runs that can still enter
-        lam = future_bet_bound(tw, nhat, self.delta0[act], self.c)
+        lam = future_bet_bound(tw.succ, nhat, self.delta0[act], self.c)
         decide = self._decide_union if self.combine == "union" else self._decide_product
         rej, fut, lvl, cur_m, cur_lev = decide(tw, act, r, lam)
         new = np.where(rej, REJECTED, np.where(fut, FUTILE, UNDECIDED)).astype(np.int8)
@@ -348,14 +413,14 @@ class SequentialState:
         done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
         self.stop_batch[act[done]] = b
 
-    def _decide_union(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray
+    def _decide_union(self, tw: TwinSides, act: np.ndarray, r: np.ndarray, lam: np.ndarray
                       ) -> tuple[np.ndarray, ...]:
         """Union rule: (rejected, futile, futility level, curtailment point m, its log-level),
         each (len(act), 2) for (H_lo, H_up); rules (a)-(c) of the module doc."""
         # (a) early rejection at a*: twin capital at the observational bound at a*
         lev_star = np.log(2.0 / self.a_star[act])
-        rej_lo = log_capital(tw, self.l_star[act], -1, True, self.c) >= lev_star
-        rej_up = log_capital(tw, self.u_star[act], +1, True, self.c) >= lev_star
+        rej_lo = log_capital(tw.lo, self.l_star[act], -1, True, self.c) >= lev_star
+        rej_up = log_capital(tw.up, self.u_star[act], +1, True, self.c) >= lev_star
         # (b) futility at alpha: best reachable capital up to the budget
         lev = np.full(len(act), np.log(2.0 / self.alpha))
         best_lo, best_up = self._best(tw, act, r, lam, self.l_fut[act], self.u_fut[act])
@@ -381,7 +446,7 @@ class SequentialState:
         return (np.stack([rej_lo, rej_up], axis=1), np.stack([fut_lo, fut_up], axis=1),
                 np.stack([lvl_lo, lvl_up], axis=1), cur_m, cur_lev)
 
-    def _decide_product(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray,
+    def _decide_product(self, tw: TwinSides, act: np.ndarray, r: np.ndarray,
                         lam: np.ndarray) -> tuple[np.ndarray, ...]:
         """Product rule (``inference.product``); same outputs as :meth:`_decide_union`.
 
@@ -423,32 +488,33 @@ class SequentialState:
         # curtailment (d) aims at early rejection: log(1/a*)
         return rej, fut, lvl, cur_m, np.log(1.0 / self.a_star[act])[:, None] - g_at
 
-    def _product(self, tw: OrderedSide, groups: np.ndarray) -> tuple:
+    def _product(self, tw: TwinSides, groups: np.ndarray) -> tuple:
         """(stat (len(groups), 2), (K-max, K-end), (K+max, K+end)): the product rule's lower
         bound of log inf_m G K for (H_lo, H_up) and the twin capitals on ``t_grid`` (H_up
-        through x -> 1 - x) of the twin side ``tw`` holding exactly ``groups``."""
-        lo = twin_grid(tw, self.t_grid, self.c)
-        up = twin_grid(mirrored(tw), self.t_grid, self.c)
+        through x -> 1 - x) of the twin sides ``tw`` holding exactly ``groups``."""
+        lo = twin_grid(tw.lo, self.t_grid, self.c)
+        up = twin_grid(mirrored(tw.up), self.t_grid, self.c)
         g = self.g_cell[groups]
         stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], lo[0]),
                          product_stat(g[:, 1, 0], g[:, 1, 1], up[0])], axis=1)
         return stat, lo, up
 
-    def _best(self, tw: OrderedSide, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
+    def _best(self, tw: TwinSides, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
               lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
         with np.errstate(divide="ignore"):  # L = 1 or U = 0: the cap is infinite
             cap_lo, cap_up = self.c / (1 - lf), self.c / uf
         best_lo = np.maximum(
-            log_capital(tw, lf, -1, True, self.c),
-            log_capital(tw, lf, -1, False, self.c) + r * np.log1p(np.minimum(lam, cap_lo) * lf))
+            log_capital(tw.lo, lf, -1, True, self.c),
+            log_capital(tw.lo, lf, -1, False, self.c)
+            + r * np.log1p(np.minimum(lam, cap_lo) * lf))
         best_up = np.maximum(
-            log_capital(tw, uf, +1, True, self.c),
-            log_capital(tw, uf, +1, False, self.c)
+            log_capital(tw.up, uf, +1, True, self.c),
+            log_capital(tw.up, uf, +1, False, self.c)
             + r * np.log1p(np.minimum(lam, cap_up) * (1 - uf)))
         return best_lo, best_up
 
-    def _curtailed(self, runs: TwinRuns, tw: OrderedSide, nhat: np.ndarray, act: np.ndarray,
+    def _curtailed(self, runs: TwinRuns, tw: TwinSides, nhat: np.ndarray, act: np.ndarray,
                    j: int, lam_bar: np.ndarray, at_m: np.ndarray, at_lev: np.ndarray
                    ) -> np.ndarray:
         """(len(act), 2) bool: P(the full budget rejects at the curtailment level) <
@@ -474,7 +540,7 @@ class SequentialState:
         budget_makes``). A heuristic: it never affects validity (stopping only forgoes
         power), and its power cost is measured (docs/sequential.md).
         """
-        gid = np.repeat(np.arange(len(act)), tw.sizes)
+        gid = np.repeat(np.arange(len(act)), tw.succ.sizes)
         seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)
         pi = np.where(seen_b0 > 0, nhat / np.maximum(seen_b0, 1), 0.0)
@@ -483,12 +549,12 @@ class SequentialState:
             m, lev = at_m[:, col], at_lev[:, col]
             cap = self.c / (1.0 - m) if sign < 0 else self.c / np.maximum(m, 1e-12)
             bet = np.minimum(lam_bar, cap)
-            g = np.log1p(np.clip(sign * bet[gid] * (tw.x - m[gid]), -self.c, None))
+            g = np.log1p(np.clip(sign * bet[gid] * (tw.succ.x - m[gid]), -self.c, None))
             n_ok = np.maximum(nhat, 1)
             g1 = np.bincount(gid, g, len(act)) / n_ok
             g2 = np.bincount(gid, g * g, len(act)) / n_ok
             mu, var = pi * g1, np.maximum(pi * g2 - (pi * g1) ** 2, 1e-12)
-            now = log_capital(tw, m, sign, False, self.c)
+            now = log_capital(tw.lo if sign < 0 else tw.up, m, sign, False, self.c)
             # predictive: mu is itself estimated from seen_b0 runs (variance var / seen_b0)
             pred = r * var * (1.0 + r / np.maximum(seen_b0, 1))
             z = (now + r * mu - lev) / np.sqrt(pred + 1e-12)
@@ -543,9 +609,9 @@ class SequentialState:
             r = s.width[g]
             q_lo = (s.q_lo_hat[g] - self.y_lo[g]) / r
             q_up = (s.q_up_hat[g] - self.y_lo[g]) / r
-            q_tw = _group_means(t)
-            k_lo = _crossing(lo, t, 0.5 * (q_lo + q_tw), True, self.c, 1e-3, 100)
-            k_up = _crossing(t, up, 0.5 * (q_up + q_tw), True, self.c, 1e-3, 100)
+            q_tw = _group_means(t.succ)
+            k_lo = _crossing(lo, t.lo, 0.5 * (q_lo + q_tw), True, self.c, 1e-3, 100)
+            k_up = _crossing(t.up, up, 0.5 * (q_up + q_tw), True, self.c, 1e-3, 100)
             p_lo[g] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
             p_up[g] = np.minimum(1.0, 2.0 * np.exp(-k_up))
         # an early rejection was verified exactly at a*: p <= a* (crossing may overstate by tol)
@@ -668,6 +734,7 @@ def adaptive_test(
     shards: np.ndarray | None = None,
     curtail: float = 0.0,
     combine: str = "union",
+    failed_runs: str = "conservative",
 ) -> AdaptiveOutcome:
     """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
 
@@ -677,7 +744,8 @@ def adaptive_test(
     ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
     Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
     futile sides per shard as the workflow's parallel shards do (default: whole family);
-    ``combine``: "union" (default) or "product" (``inference.product``).
+    ``combine``: "union" (default) or "product" (``inference.product``); ``failed_runs``:
+    "conservative" (default: valid whatever the failed runs would have produced) or "drop".
     """
     m = nodes.x0.shape[0]
     budget = m if budget is None else int(budget)
@@ -688,7 +756,7 @@ def adaptive_test(
         holm_aware = correction in HOLM_AWARE
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
                          holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail,
-                         combine=combine)
+                         combine=combine, failed_runs=failed_runs)
     run_to_stop(st, runs)
     return outcome(hyps, nodes, states, st, runs, alpha, correction)
 

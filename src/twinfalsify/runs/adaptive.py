@@ -93,6 +93,7 @@ def run_adaptive_shard(
     correction: str = "holm",
     curtail: float = 0.0,
     combine: str = "union",
+    failed_runs: str = "conservative",
     log=sys.stderr,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
     """Simulate one shard adaptively: (node rows simulated, decisions, summary).
@@ -111,7 +112,7 @@ def run_adaptive_shard(
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed,
                          n_family=family_sizes(hyps), only=mine,
                          holm_aware=correction in HOLM_AWARE, holm_scope=mine, curtail=curtail,
-                         combine=combine)
+                         combine=combine, failed_runs=failed_runs)
     sub = hyps.iloc[idx]
     seqs = [tuple(int(a) for a in s) for s in sub["actions"].tolist()]
     seeds = plan.run_seeds()
@@ -274,6 +275,7 @@ def load_simulated(rows: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> Twin
 def adaptive_results(
     hyps: pd.DataFrame, obs: ObservationalSide, nodes: TwinNodes, states: StateBins,
     decisions: pd.DataFrame, *, alpha: float = 0.05, correction: str = "holm",
+    failed_runs: str = "conservative",
 ) -> pd.DataFrame:
     """The tests stage's long results table from adaptive decisions (method betting_sequential).
 
@@ -309,9 +311,8 @@ def adaptive_results(
             "outcome": hyps["outcome"].to_numpy(), "t": hyps["t"].to_numpy(), "side": side,
             "method": "betting_sequential", "n": s.n, "n_follow": s.n_follow, "nhat": s.nhat,
             "n_failed": dec["n_failed"].to_numpy(),
-            # the sequential test leaves failed runs out (counted in n_failed); the
-            # conservative worst case of the fixed scheme is not implemented for it
-            "failed_runs": "drop", "y_lo": s.y_lo, "y_up": s.y_up,
+            # how the shards' p-values treated failed runs (sequential module doc)
+            "failed_runs": failed_runs, "y_lo": s.y_lo, "y_up": s.y_up,
             "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
             "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
             "p_floor": False, "rejected": rej, "correction": correction, "alpha": alpha,
