@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> None:
             nodes = with_failures(clean, scenario, hr_cap, seed)
             row = {"twin": name, "failures": scenario,
                    "failed_node_runs": round(float(np.isnan(nodes.values[:, :, 0]).mean()), 4)}
+            if args.fixed:
+                tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
+                samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
             for mode in ("drop", "conservative") if scenario != "none" else ("drop",):
                 o = adaptive_test(st.hyps, st.obs, nodes, st.states, batch_size=args.batch_size,
                                   alpha=alpha, seed=seed, shards=shard_of, curtail=args.curtail,
@@ -98,10 +101,8 @@ def main(argv: list[str] | None = None) -> None:
                 row[f"hours_{mode}"] = round(o.twin_hours_adaptive / o.twin_hours_fixed, 4)
                 row[f"rejected_{mode}"] = int(o.rejected_lo.sum() + o.rejected_up.sum())
                 if args.fixed:
-                    tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
-                    res = run_tests(st.hyps, bounds.hypothesis_samples(st.hyps, st.obs, tv), nf,
-                                    make_methods({"betting": {}}, seed), alpha=alpha,
-                                    failed_runs=mode)
+                    res = run_tests(st.hyps, samples, nf, make_methods({"betting": {}}, seed),
+                                    alpha=alpha, failed_runs=mode)
                     row[f"fixed_rejected_{mode}"] = int(res["rejected"].sum())
             rows.append(row)
             print(row, flush=True)

@@ -153,8 +153,7 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     hours = expected(x0, doses[:hours_asked], seed, args.wobble)
     cut = hours_asked
     if args.truncate and msg.get("continue_while") is not None and mode == "ok":
-        values = [[h[f] for f in FEATURES] for h in hours]
-        cut = hours_needed(parse_paths(msg["continue_while"]), values, hours_asked)
+        cut = hours_needed(parse_paths(msg["continue_while"]), hours, hours_asked)
     if args.engine_hours is not None:
         _log_engine_hours(args.engine_hours, seed, doses[:cut])
     answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",

@@ -366,9 +366,9 @@ class SequentialState:
         x = (np.clip(v.values[sel], self.y_lo[g], self.y_up[g]) - self.y_lo[g]) / (
             self.y_up[g] - self.y_lo[g])
         m = runs.failed.shape[1]
-        fail = (runs.failed[groups] & (np.arange(m)[None, :] < upto[groups][:, None])
-                if self.failed_runs == "conservative" else np.zeros((0, 0), bool))
-        fg, fj = np.nonzero(fail)  # group position, run: sorted by group, then run
+        fg = fj = np.zeros(0, np.int64)  # failed runs: group position, run (sorted so)
+        if self.failed_runs == "conservative":
+            fg, fj = np.nonzero(runs.failed[groups] & (np.arange(m) < upto[groups][:, None]))
         if len(fg) == 0:
             succ = OrderedSide(x, cs_bets(x, offs, self.delta0[groups], self.c), offs)
             return TwinSides(succ, succ, succ), sizes

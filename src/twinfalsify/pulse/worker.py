@@ -68,7 +68,7 @@ from twinfalsify.pulse.units import (
 )
 from twinfalsify.runs import protocol
 from twinfalsify.runs.truncation import Box, hours_needed, parse_paths
-from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, ContractError
+from twinfalsify.schema import FEATURE_TABLE, T_MAX, ContractError
 
 # Folders of a Pulse data root (the install's bin/). Real Pulse 4.2 started with a data root
 # lacking them logs "Unable to find substance directory" and then dies with SIGSEGV inside
@@ -449,10 +449,7 @@ def _still_needed(paths: list[list[Box]] | None, hours_out: list[dict[str, float
                   total: int) -> bool:
     """Whether hour len(hours_out) + 1 of a run of ``total`` hours is still needed by some
     ``continue_while`` path (always, without paths)."""
-    if paths is None:
-        return True
-    values = [[h[f] for f in FEATURES] for h in hours_out]
-    return hours_needed(paths, values, total) > len(hours_out)
+    return paths is None or hours_needed(paths, hours_out, total) > len(hours_out)
 
 
 def _parse_request(req: dict[str, Any]

@@ -12,7 +12,7 @@ a twin with the ``truncate`` capability may stop it and answer the hours it has,
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -48,16 +48,18 @@ def parse_paths(value: Any) -> list[list[Box]]:
 def hours_needed(paths: Sequence[Sequence[Box]], values: np.ndarray | Sequence, hours: int,
                  columns: Sequence[str] = FEATURES) -> int:
     """Hours 1..n of a run that some path still needs, given its completed hours
-    ``values`` ((s, len(columns)), ``columns`` order): n = 1 + the longest run of leading
-    boxes of any path that hold, at most ``hours``. An hour not completed yet counts as
-    holding nothing, so the result never exceeds len(values) + 1."""
+    ``values`` ((s, len(columns)), ``columns`` order; or protocol hour objects
+    {feature: value}): n = 1 + the longest run of leading boxes of any path that hold, at
+    most ``hours``. An hour not completed yet counts as holding nothing, so the result never
+    exceeds len(values) + 1."""
     col = {c: i for i, c in enumerate(columns)}
     best = 0
     for path in paths:
         k = 0
         while k < min(len(path), len(values)):
             name, op, thr = path[k]
-            v = values[k][col[name]]
+            row = values[k]
+            v = row[name] if isinstance(row, Mapping) else row[col[name]]
             if not (op == "any" or (v > thr if op == ">" else v <= thr)):
                 break
             k += 1
