@@ -17,7 +17,7 @@ failure scenario: twin-hours / fixed, Holm rejections, and (``none``) the same w
 failures; with ``--fixed`` also the fixed scheme's betting test (Holm) in both modes, for
 comparison (``inference.failures``: the maximum over k of the p-values). Conservative never
 rejects more than drop on the same runs; what it costs in power and hours is what this
-measures (docs/sequential.md, "Failed twin runs").
+measures (docs/explanation/sequential.md, "Failed twin runs").
 """
 
 from __future__ import annotations

@@ -16,10 +16,10 @@ the same at the observational bound L* at a* (what a real union test must use);
 do with perfect bets: the observational bound at its own Holm level a (not a*), level a/2,
 the hindsight-optimal constant bet; ``oracle_cs`` with the CS plug-in bets;
 ``union`` L*, a*, CS bets; ``adaptive_union`` the union rule's rejected sets as run. Not
-a proof beyond ``monotone``; a map of where the hours go (docs/sequential.md).
+a proof beyond ``monotone``; a map of where the hours go (docs/explanation/sequential.md).
 
 ``--keep f`` (default 1) costs only the fraction f of each replicate's rejected sides that
-stop earliest under each variant (issue 17's target keeps >= 90 % of the fixed test's
+stop earliest under each variant (a target that keeps >= 90 % of the fixed test's
 rejections): the sides dropped are the most expensive alone, a heuristic for the cheapest
 subset (prefix sharing is ignored when choosing it).
 """

@@ -1,4 +1,4 @@
-"""Benchmark: simulated twin-hours saved by prefix-tree reuse (issue 5 part 4).
+"""Benchmark: simulated twin-hours saved by prefix-tree reuse.
 
     PYTHONPATH=src python benchmarks/bench_prefix_reuse.py [--config config/config.yaml]
         [--results results/<study>] [--skip-pulse]

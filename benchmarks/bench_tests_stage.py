@@ -14,7 +14,7 @@ betting). ``--baseline-subset K`` times the baseline on K random hypotheses and
 scales linearly (stated in the output) when the full loop would take too long.
 
 ``--power`` instead prints the small power/width comparison of the exact methods
-quoted in docs/statistics.md.
+quoted in docs/explanation/statistics.md.
 """
 
 from __future__ import annotations
@@ -155,7 +155,10 @@ def run_baseline(s: HypothesisSamples, index: np.ndarray) -> float:
 
 
 def power_comparison() -> None:
-    """Width and power of the exact methods on simple simulated cases (docs/statistics.md)."""
+    """Width and power of the exact methods on simple simulated cases.
+
+    Quoted in docs/explanation/statistics.md.
+    """
     from twinfalsify.inference.bernstein import bernstein_radius, sample_variances
     from twinfalsify.inference.betting import _bound, ordered_sides
     from twinfalsify.inference.hoeffding import hoeffding_radius

@@ -50,7 +50,7 @@ def main(sm):
         "twin_hours_requested": sum(s["twin_hours_requested"] for s in summaries),
         "ratio": hours_a / max(hours_f, 1),
         # hours of runs that had left every B-set needing them were not kept (in-process
-        # twins); protocol twins simulate whole paths (docs/sequential.md)
+        # twins); protocol twins simulate whole paths (docs/explanation/sequential.md)
         "depth_truncation": all(s.get("depth_truncation", False) for s in summaries),
         "node_rows_simulated": len(rows),
         "by_hour_and_status": status_summary(rows) if len(rows) else {},

@@ -14,11 +14,11 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 def shared_dir() -> Path | None:
-    """../shared next to the checkout (CI layout), else /work/shared; None when absent."""
-    for cand in (ROOT.parent / "shared", Path("/work/shared")):
-        if cand.is_dir():
-            return cand
-    return None
+    """The shared data folder: ``$TWINFALSIFY_SHARED`` if set, else ``../shared`` next to the
+    checkout (the CI layout); None when absent (the tests that need it skip)."""
+    env = os.environ.get("TWINFALSIFY_SHARED")
+    cand = Path(env) if env else ROOT.parent / "shared"
+    return cand if cand.is_dir() else None
 
 
 @pytest.fixture(scope="session")

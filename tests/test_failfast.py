@@ -1,4 +1,4 @@
-"""Fail fast, flag implausible values, never leave a stale result (issue 16).
+"""Fail fast, flag implausible values, never leave a stale result.
 
 - the circuit breaker stops a twin that fails every run (a log line on stdout, a crash)
   within ``fail_fast_runs`` runs / ``max_restarts`` restarts, in one line naming the command

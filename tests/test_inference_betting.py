@@ -311,7 +311,7 @@ def test_averaging_orders_shrinks_the_seed_spread():
     assert many < 0.5 * one, (one, many)
 
 
-# --- order-free grid mixture (the default bets; issue 17) ---------------------------------
+# --- order-free grid mixture (the default bets) ------------------------------------------
 
 
 def _mixture_reference_p(x_large, x_small, delta0, c, grid=MIX_GRID, ratio=MIX_RATIO):

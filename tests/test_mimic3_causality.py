@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import shared_dir
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3
 from twinfalsify.sources.mimic3.tables import connect
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
-_SHARED = Path(__file__).resolve().parents[2] / "shared"
-DEMO = (_SHARED if _SHARED.is_dir() else Path("/work/shared")) / "data" / "mimic-iii-demo"
+DEMO = (shared_dir() or Path(__file__).resolve().parents[2] / "shared") / "data" / "mimic-iii-demo"
 EARLY = pd.Timestamp("1700-01-01")
 VALUE_FEATURES = [f for f in schema.FEATURES if f not in ("age", "sex")]
 

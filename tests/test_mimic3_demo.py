@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from conftest import shared_dir
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3
@@ -16,7 +17,7 @@ from twinfalsify.sources.mimic3.options import PRESETS
 
 def _shared() -> Path:
     p = Path(__file__).resolve().parents[1].parent / "shared"
-    return p if p.is_dir() else Path("/work/shared")
+    return shared_dir() or p
 
 
 DEMO = _shared() / "data" / "mimic-iii-demo"
@@ -24,7 +25,7 @@ DEMO = _shared() / "data" / "mimic-iii-demo"
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
                                  reason=f"MIMIC-III demo not present at {DEMO}")]
-# documented in docs/mimic3.md (CONSORT of the demo under each anchor)
+# documented in docs/how-to/mimic3.md (CONSORT of the demo under each anchor)
 COUNTS = {
     "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 21, 21],
     "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 60, 60],

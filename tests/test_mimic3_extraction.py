@@ -20,7 +20,7 @@ from twinfalsify.sources.mimic3.tables import connect, find_table
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
 S1, S2, S12 = 200001, 200002, 200012
 # the cohort under anchor=intime: S1, S2 (hand-computed values), S9 (weaned, not a
-# withdrawal), and the stays of issue 15's bugs that the old code excluded or got wrong
+# withdrawal), and the stays of the fixed extraction bugs that the old code got wrong
 COHORT_INTIME = [200001, 200002, 200009, 200016, 200017, 200019, 200020, 200022, 200023]
 
 
@@ -242,7 +242,7 @@ def test_resolve_dir_env_override(tmp_path, monkeypatch):
         resolve_mimic3_dir(None)
 
 
-# --- issue 15: one fixture stay per bug; the old code got each wrong (tests/fixtures/mimic3
+# --- one fixture stay per extraction bug; the old code got each wrong (tests/fixtures/mimic3
 # README: the old extraction kept S14, S15, S21, S24, excluded S9, S19, S20, S23 and gave
 # S16 / S17 values from later hours)
 

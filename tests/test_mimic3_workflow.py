@@ -18,13 +18,14 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from conftest import shared_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _shared() -> Path:
     p = ROOT.parent / "shared"
-    return p if p.is_dir() else Path("/work/shared")
+    return shared_dir() or p
 
 
 DEMO = _shared() / "data" / "mimic-iii-demo"
@@ -102,7 +103,7 @@ def test_data_fingerprint_follows_folder_and_files(tmp_path, monkeypatch):
 
 
 def test_another_mimic3_dir_reruns_the_extraction(tmp_path):
-    """Issue 15: with TWINFALSIFY_MIMIC3_DIR pointing elsewhere the trajectories rule must
+    """With TWINFALSIFY_MIMIC3_DIR pointing elsewhere the trajectories rule must
     run again (before, the old cohort silently stood)."""
     a, b = tmp_path / "a", tmp_path / "b"
     shutil.copytree(FIX, a)

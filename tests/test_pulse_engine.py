@@ -6,10 +6,11 @@ Skipped, with one line saying why, unless a real Pulse build is reachable:
     PULSE_PYTHONPATH   the build's ``install/bin`` and ``install/python`` (os.pathsep-joined)
     PULSE_DATA_ROOT    the build's ``install/bin`` (Pulse's data folders)
 
-``envs/pulse/build.sh SRC PREFIX`` prints the last two; PULSE_PYTHON is PREFIX/venv/bin/python.
+``envs/pulse/build.sh SRC PREFIX`` prints ``export PYTHONPATH=...`` (the value to give
+PULSE_PYTHONPATH) and ``export PULSE_DATA_ROOT=...``; PULSE_PYTHON is PREFIX/venv/bin/python.
 Every test talks to the worker as the runner does (a subprocess over the protocol) except
 the refused patient, which needs the worker's clamp turned off. Cost on a 2-core machine:
-about 11 simulated engine-hours (~205 CPU-s each) in all; docs/pulse.md has the measured times.
+about 11 simulated engine-hours in all; docs/reference/benchmarks.md has the measured times.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ inode and modification time: reused, not recomputed), and results.parquet must e
 uninterrupted run's, table and bytes.
 
 - SIGKILL to snakemake's whole process group: a crash (node lost, OOM killer, kill -9). The
-  lock stays behind; the rerun refuses until `snakemake --unlock`, as docs/cluster.md says.
+  lock stays behind; the rerun refuses until `snakemake --unlock`, as docs/how-to/cluster.md says.
 - SIGINT to the group: Ctrl-C. Snakemake stops its jobs, removes their incomplete outputs and
   releases the lock; the rerun needs nothing else.
 """

@@ -89,7 +89,7 @@ def slurm_profile(dest: Path, partition: str) -> Path:
     """The shipped profile with its placeholders filled in, as the docs tell a user to do."""
     text = (ROOT / "workflow" / "profiles" / "slurm" / "config.yaml").read_text()
     assert "YOUR_PARTITION" in text and "YOUR_ACCOUNT" in text
-    # no accounting storage here, so no accounts: delete the line, as docs/cluster.md says
+    # no accounting storage here, so no accounts: delete the line, as docs/how-to/cluster.md says
     lines = [ln for ln in text.splitlines() if "YOUR_ACCOUNT" not in ln]
     text = "\n".join(lines).replace("YOUR_PARTITION", partition)
     text = text.replace(

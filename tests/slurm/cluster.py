@@ -13,7 +13,7 @@ config is also installed as /etc/slurm/slurm.conf (and removed again by ``stop``
 that we did not write is never overwritten (the cluster then refuses to start).
 
 Why these settings:
-- one node = this machine, CPUs and RealMemory measured here (``nproc``, /proc/meminfo), so the
+- one node = this machine, CPUs and RealMemory measured on it (``nproc``, /proc/meminfo), so the
   scheduler never waits for resources that do not exist;
 - no accounting storage (no slurmdbd): Snakemake's Slurm plugin then has to ask ``squeue`` for
   job states, and squeue forgets finished jobs after ``MinJobAge`` seconds, which the plugin

@@ -1,4 +1,4 @@
-# Adaptive (sequential) twin runs: twin_runs.mode = adaptive (docs/sequential.md).
+# Adaptive (sequential) twin runs: twin_runs.mode = adaptive (docs/explanation/sequential.md).
 # Each shard simulates batch by batch and stops decided hypotheses; tests_adaptive merges
 # the shards and corrects the anytime-valid p-values. In adaptive mode its output is the
 # twin's results.parquet (ruleorder below), so tables and figures follow unchanged.

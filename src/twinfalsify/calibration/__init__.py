@@ -29,7 +29,7 @@ Measured (aggregated over R replicates by :func:`summarise`):
   the observational mean of f among followers (A_1:t = a_1:t, X in B), no
   bounds; with confounding it rejects the oracle.
 * Widths: mean (Q_up - Q_lo) / (y_up - y_lo) = 1 - propensity, causal vs Manski.
-* Adaptive twin runs (``adaptive: true``; issue 11): ``inference.sequential.adaptive_test``
+* Adaptive twin runs (``adaptive: true``): ``inference.sequential.adaptive_test``
   on the same runs revealed in batches (method ``betting_sequential``): its FWER and power
   as above, and per twin the simulated twin-hours (prefix reuse) adaptive vs fixed and the
   share of the fixed betting / Hoeffding rejections it keeps (:func:`adaptive_summary`).

@@ -13,7 +13,7 @@ from twinfalsify.schema import OUTCOMES, ContractError
 ADAPTIVE = "betting_sequential"  # inference.sequential.adaptive_test (anytime-valid, exact)
 EXACT_METHODS = ("hoeffding", "betting", "bernstein", ADAPTIVE)
 NAIVE = "naive_welch"
-HOURS_TARGET = 0.1  # issue 11: at most 1/10 of the fixed scheme's twin-hours ...
+HOURS_TARGET = 0.1  # target: at most 1/10 of the fixed scheme's twin-hours ...
 KEPT_TARGET = 0.9  # ... while keeping >= 90 % of its rejections
 
 # Column contracts of the per-replicate tables.
@@ -35,7 +35,10 @@ ADAPTIVE_COLUMNS = (
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """Settings of a calibration run (``config/calibration.yaml``; see docs/calibration.md)."""
+    """Settings of a calibration run (``config/calibration.yaml``).
+
+    See docs/explanation/calibration.md.
+    """
 
     replicates: int = 200
     seed: int = 2026

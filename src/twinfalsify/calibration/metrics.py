@@ -82,13 +82,13 @@ def coverage_summary(cov: pd.DataFrame) -> pd.DataFrame:
 
 
 def adaptive_summary(adaptive: pd.DataFrame) -> pd.DataFrame:
-    """Per bias: twin-hours adaptive vs fixed and rejections kept, with the issue-11 target.
+    """Per bias: twin-hours adaptive vs fixed and rejections kept, with the hours target.
 
     hours_ratio = sum_r hours_adaptive / sum_r hours_fixed (pooled over replicates: the
     share of the whole calibration's twin-hours; ``hours_ratio_max`` = the worst
     replicate). kept_share_<m> = sum_r kept_r / sum_r rejected_r(fixed m), where kept_r
     counts the fixed test's rejections (parameter set, side) the adaptive test also makes
-    (NA when the fixed test made none: nothing to keep). Target (issue 11):
+    (NA when the fixed test made none: nothing to keep). Target:
     hours_ratio <= 1/10 and kept_share_betting >= 0.9 — the fixed betting test is the
     like-for-like comparison (same statistic at the full budget); Hoeffding (the paper's
     test) is reported alongside.

@@ -164,7 +164,7 @@ def markdown_summary(
 
 def adaptive_markdown(asum: pd.DataFrame) -> list[str]:
     """Summary section of the adaptive test: twin-hours and kept rejections per bias, and
-    the issue-11 target read off the table (never asserted)."""
+    the hours target read off the table (never asserted)."""
 
     def share(x: float) -> str:
         return "n/a" if np.isnan(x) else f"{x:.0%}"

@@ -16,7 +16,7 @@ or nhat < 2 (the bound needs a variance estimate).
 
 Assumptions: i.i.d. and bounded samples, sides independent. Tighter than Hoeffding
 only when the variance is well below R^2/4 and n is large (the 7/3 log term costs
-more than Hoeffding saves otherwise); docs/statistics.md has the comparison.
+more than Hoeffding saves otherwise); docs/explanation/statistics.md has the comparison.
 Reference: A. Maurer & M. Pontil (2009), "Empirical Bernstein bounds and
 sample-variance penalization", COLT 2009, Theorem 4.
 """

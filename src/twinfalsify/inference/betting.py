@@ -11,7 +11,8 @@ with the predictable plug-in bet tuned for a fixed sample size n (WSR 2024, Sec.
 and Remark "fixed-n"): lambda_i = sqrt(2 log(1/delta0) / (n sigma2_{i-1})),
 mu_i = (1/2 + sum_{j<=i} x_j) / (i + 1), sigma2_i = (1/4 + sum_{j<=i} (x_j - mu_j)^2) / (i + 1),
 sigma2_0 = 1/4, c = 0.9 (WSR use 1/2 or 3/4; any c < 1 is valid, 0.9 is
-tighter at the small levels Holm needs, measured in docs/statistics.md). As in WSR's
+tighter at the small levels Holm needs, measured in docs/explanation/statistics.md).
+As in WSR's
 Theorem 3 the bet is truncated only at c/m (c/(1-m)), never at c itself: near a
 boundary (m small for K+) bets above 1 are allowed and still keep every factor
 >= 1 - c > 0, which is what makes small skewed samples near 0 or 1 tight.
@@ -45,7 +46,7 @@ observational sample lists followers first; the order used is a uniformly random
 Y_lo and Y_up) and for the twin sample. Same seed, same p-values. ``orders`` K > 1 averages
 the terminal capital over K such orders (an average of e-values is an e-value, Markov).
 
-Order-free mixture ("mixture" bets, the default; issue 17). Replace the predictable bet by a
+Order-free mixture ("mixture" bets, the default). Replace the predictable bet by a
 uniform mixture over a fixed grid of J constant bets,
 
     E+(m) = (1/J) sum_j prod_{i<=n} (1 + min(lambda_j, c/m) (x_i - m)),   E- mirrored,
@@ -61,7 +62,8 @@ on the order of its factors: the p-value is a symmetric function of each sample,
 enters and no decision can flip with one. Each factor is monotone in m as above, so E+ is
 non-increasing (E- non-decreasing) and the crossing and union arguments below hold with E in
 place of max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
-discretisation of the best bet by at most a factor sqrt(r); measured in docs/statistics.md.
+discretisation of the best bet by at most a factor sqrt(r); measured in
+docs/explanation/statistics.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
 Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are
@@ -83,7 +85,7 @@ from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
 BETS = ("mixture", "plugin")  # order-free grid mixture (default) | WSR predictable plug-in
-MIX_GRID = 6  # J constant bets in the mixture (power measured against J, docs/statistics.md)
+MIX_GRID = 6  # J constant bets in the mixture (power against J: docs/explanation/statistics.md)
 MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
 
 
@@ -487,7 +489,7 @@ def default_tune_alpha(h: int) -> float:
     return 0.05 / (2 * max(int(h), 1))
 
 
-ORDERS = 16  # default K for plugin bets: seed-to-seed spread measured in docs/statistics.md
+ORDERS = 16  # default K for plugin bets (seed-to-seed spread: docs/explanation/statistics.md)
 _CHUNK_ELEMENTS = 1 << 23  # copies (n + nhat) summed per chunk of hypotheses: bounds memory
 
 

@@ -18,7 +18,7 @@ twin's running maximum per m. This is the "e-values multiply for independent dat
 argument (Vovk & Wang 2021, Ann. Stat. 49(3):1736-1754; Ramdas, Grünwald, Vovk & Shafer
 2023, Stat. Sci. 38(4):576-601). No union bound: each side sees the whole gap, and the
 required gap behaves like a two-sample test's, sqrt(2 log(1/a) (s_obs^2/n + s_twin^2/t)),
-instead of the sum of two one-sample widths at 2/a (docs/sequential.md, measured).
+instead of the sum of two one-sample widths at 2/a (docs/explanation/sequential.md, measured).
 
 *Bets.* The observational capital must not decay where its null holds, or the inf would
 sit there: its bets are m-dependent, aGRAPA (Waudby-Smith & Ramdas 2024, JRSS-B

@@ -47,7 +47,7 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
 
 A parameter set keeps receiving runs while either side is undecided; its p-values are
 computed at its stopping time. Holm / BY then run on these p-values as usual. Why the
-family-wise error stays controlled: docs/sequential.md.
+family-wise error stays controlled: docs/explanation/sequential.md.
 
 Failed twin runs (``failed_runs``; a run whose X_0 lies in B_0 and whose path failed before
 it could be seen to leave B_1:t). ``drop`` leaves them out (the paper). ``conservative`` (the
@@ -302,7 +302,8 @@ class SequentialState:
         self.obs_samples = HypothesisSamples(self.y_lo, self.y_up, self.obs.n,
                                              self.obs.follow, empty)
         # plug-in bets in one seeded order, running maximum (the grid mixture of the fixed
-        # scheme was measured here too: same decisions, ~5x the compute; docs/sequential.md)
+        # scheme, measured too: same decisions, ~5x the compute;
+        # docs/explanation/sequential.md)
         self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c,
                                             orders=1)
         lev_star, lev = np.log(2.0 / self.a_star), np.full(h, np.log(2.0 / self.alpha))
@@ -525,7 +526,8 @@ class SequentialState:
         log-level ``at_lev`` (union: log(2/a*); product: log(1/a*) - log G(m)). Aiming at
         the side's Holm-aware level instead (alpha / 2^q, far more lenient when few sides
         are futile) kept grey-zone sides running to the budget: more hours for the same
-        rejections (docs/sequential.md). Each remaining run with X_0 in B_0 enters with the
+        rejections (docs/explanation/sequential.md). Each remaining run with X_0 in B_0
+        enters with the
         observed rate pi = nhat / (revealed runs with X_0 in B_0) and then adds
         g(x) = log(1 - min(lam, c/(1-m)) (x - m)), x drawn from the values seen so far,
         lam = the largest future bet (``future_bet_bound``). With mu, v the mean and
@@ -538,7 +540,7 @@ class SequentialState:
         7:8-17). Without it the stop is overconfident early on (r >> n) and forgoes many
         rejections with small batches (``test_curtailment_forgoes_few_rejections_the_full_
         budget_makes``). A heuristic: it never affects validity (stopping only forgoes
-        power), and its power cost is measured (docs/sequential.md).
+        power), and its power cost is measured (docs/explanation/sequential.md).
         """
         gid = np.repeat(np.arange(len(act)), tw.succ.sizes)
         seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)

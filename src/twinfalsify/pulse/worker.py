@@ -26,7 +26,7 @@ Per ``simulate`` request (see runs/protocol.py):
    ``initialize_engine`` returning False -> "init_failed" with the engine log's
    [ERROR] lines. Hours completed before a failure are returned.
 
-Depth truncation (capability ``truncate``, docs/twin-protocol.md): a request carrying
+Depth truncation (capability ``truncate``, docs/reference/twin-protocol.md): a request carrying
 ``continue_while`` box paths stops after the first completed hour on which no path holds any
 more (``runs.truncation.hours_needed``) and answers status ok with the hours it has and
 ``"truncated": true``; a prefix already simulated is returned whole (it costs nothing).

@@ -124,7 +124,8 @@ def run_adaptive_shard(
     def runs_now():
         return embed_runs(twin_runs_indexed(sub, nodes, states), idx, h_total)
 
-    # depth truncation (docs/sequential.md): hours of a run that already left every B-set
+    # depth truncation (docs/explanation/sequential.md): hours of a run that already left
+    # every B-set
     # needing them are not kept. In-process twins compute whole paths at no cost, so their
     # node rows are what a truncating engine would simulate; a protocol twin advertising
     # `truncate` gets the box paths and stops such runs; others simulate whole paths.

@@ -298,7 +298,7 @@ def _clamp_features(value: object) -> set[str]:
 
 
 def clamp_shares(runs: pd.DataFrame) -> dict[str, object]:
-    """Share of twin runs whose X_0 the twin clamped, per feature (issue 10 point 3).
+    """Share of twin runs whose X_0 the twin clamped, per feature.
 
     A run = one initial stay (X_0); its ``clamped`` record ({feature: [given,
     used]}) is the same on every node row of it (clamping happens at

@@ -26,7 +26,7 @@ its completed hours (``runs.truncation``): it answers status ok with those hours
 "timeout" when a run exceeds its time limit. ``simulate_batch`` is an optional
 capability within version 1: the caller sends it only to a twin whose hello advertises
 ``capabilities.batch``
-> 1 (``serve_forever`` answers it for every twin). See docs/twin-protocol.md
+> 1 (``serve_forever`` answers it for every twin). See docs/reference/twin-protocol.md
 for the full description.
 """
 
@@ -368,7 +368,7 @@ def check_result(
 ) -> CheckedResult:
     """Validate a simulate answer for ``request_id`` that asked for ``hours`` hours.
 
-    Rules (docs/twin-protocol.md, "result"): op is "result"; id echoes the
+    Rules (docs/reference/twin-protocol.md, "result"): op is "result"; id echoes the
     request; status is one of RESULT_STATUSES; "hours" is a list of at most
     ``hours`` objects, exactly ``hours`` when status is "ok"; every hour object
     holds a finite number for every feature in ``required`` and no feature the

@@ -1,6 +1,6 @@
 """ProtocolTwin: the Twin interface (twins.base.Twin) backed by a subprocess command.
 
-The command speaks the twin protocol v1 (docs/twin-protocol.md); runs go
+The command speaks the twin protocol v1 (docs/reference/twin-protocol.md); runs go
 through ``runs.runner.simulate_via_protocol`` (worker pool, timeouts,
 restarts, retries, one status per run). ``batch_size`` caps the runs per
 ``simulate_batch`` message for a twin that advertises batches.

@@ -24,7 +24,7 @@ answers garbage during a batch, it is restarted and the batch's runs are
 retried one by one with plain ``simulate`` requests, so every run still gets
 its own status and message exactly as without batching.
 
-The protocol is described in docs/twin-protocol.md.
+The protocol is described in docs/reference/twin-protocol.md.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
     python -m twinfalsify.runs.serve <name> [--spec JSON] [--context DIR]
 
 builds the twin with ``twinfalsify.runs.registry.make_twin(name, spec,
-context_dir)`` and answers protocol v1 requests (docs/twin-protocol.md) on
+context_dir)`` and answers protocol v1 requests (docs/reference/twin-protocol.md) on
 stdin/stdout until "shutdown" or end of input. The hello advertises
 ``capabilities.batch`` = BATCH_MAX: a ``simulate_batch`` message is answered
 with ONE vectorised ``twin.simulate`` call per group of requests of equal

@@ -7,7 +7,7 @@ hour"; "any": the whole space), for the hours before the hypothesis' last one. A
 completing hour s the run is still needed iff some path has at least s boxes and its first
 s boxes all hold on hours 1..s; otherwise no hypothesis can be entered by it any more, and
 a twin with the ``truncate`` capability may stop it and answer the hours it has, flagged
-``truncated`` (docs/twin-protocol.md). The caller checks the flag against the same rule.
+``truncated`` (docs/reference/twin-protocol.md). The caller checks the flag against the same rule.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ def data_params(cfg: dict[str, Any] | None) -> str:
 
 def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
     """Extract the cohort from ``cfg['path']`` (or $TWINFALSIFY_MIMIC3_DIR) with the time
-    anchor ``cfg['anchor']`` (``first_vitals`` by default, see docs/mimic3.md),
+    anchor ``cfg['anchor']`` (``first_vitals`` by default, see docs/how-to/mimic3.md),
     ``cfg['anchor_window_h']`` and the switches / ``cohort_variant`` preset of
     ``options.options_from_config``; write cohort/consort.csv, cohort/missingness.csv,
     cohort/anchors.csv, cohort/stays.csv (one audit row per ICU stay) and

@@ -5,7 +5,7 @@ per-stay audit table. No value of hour t depends on anything charted after the e
 hour t (tests/test_mimic3_causality.py).
 
 Steps (each a row of the CONSORT table, ``STEPS``; every criterion is evaluated for every
-stay where it is defined; docs/mimic3.md explains each and how it differs from the
+stay where it is defined; docs/how-to/mimic3.md explains each and how it differs from the
 AI-Clinician code; the switches are in ``options``):
  1. all ICU stays;
  2. adults: age >= 18 at ICU admission (INTIME - DOB; MIMIC's shifted ages > 89 set to 91.4);
@@ -568,7 +568,7 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     ``options``: the switches of ``options.Mimic3Options`` (project defaults). Every
     criterion is evaluated for every stay where it is defined (``stays`` of the result, one
     row per ICU stay); the CONSORT chain applies them in the order of ``STEPS``. See the
-    module docstring and docs/mimic3.md.
+    module docstring and docs/how-to/mimic3.md.
     """
     opts = options or Mimic3Options()
     if anchor not in ANCHORS:

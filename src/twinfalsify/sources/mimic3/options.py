@@ -1,5 +1,5 @@
 """The extraction's deliberate choices where the project departs from AI-Clinician, as named
-switches (docs/mimic3.md, "Switches"), and the ``cohort_variant`` presets.
+switches (docs/how-to/mimic3.md, "Switches"), and the ``cohort_variant`` presets.
 
 Each switch has the project's default and AI-Clinician's behaviour (Komorowski et al. 2018,
 github.com/matthieukomorowski/AI_Clinician: AIClinician_sepsis3_def_160219.m,

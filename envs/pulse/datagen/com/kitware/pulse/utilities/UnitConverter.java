@@ -1,5 +1,5 @@
 // twinfalsify stand-in for Pulse's UnitConverter, whose methods call the native PulseJNI library
-// (not built here). Used only by envs/pulse/datagen/GenData.java to write Pulse's data files:
+// (not built by build.sh). Used only by envs/pulse/datagen/GenData.java to write Pulse's data files:
 // unit compatibility checks accept any unit (the spreadsheet's units are Pulse's own) and an actual
 // conversion between two different units fails loudly (data generation requests none).
 package com.kitware.pulse.utilities;

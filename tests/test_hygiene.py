@@ -1,0 +1,111 @@
+"""The product speaks to its users: no narration of how it was developed, no machine paths.
+
+Every text file a user reads or runs (README, docs, library, configs, tests and their
+fixtures, benchmarks, environments, scripts, workflow) is searched for numbered periods of
+work ("session 3"), issue numbers ("issue 12", "#12"), "the brief", "built here" /
+"measured here" (say what, how, with which command and on which machine kind instead), and
+absolute paths of one machine (``/work/...``, ``/root/...``, ``/home/...``). A hit fails the
+test naming ``file:line`` and the line.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCOPE = ("README.md", "docs", "src", "config", "tests", "benchmarks", "envs", "scripts",
+         "workflow", "Snakefile", "Makefile", "mkdocs.yml", ".ci")  # fmt: skip
+SELF = Path(__file__).resolve()
+
+# Each pattern is case-insensitive; the name says what it catches.
+PATTERNS: dict[str, str] = {
+    "a period of work": r"\b(this|last|next|earlier|previous|that|same) session\b"
+    r"|\bsessions? [0-9]+\b",
+    "an issue number": r"\bissues?[ -]?#?[0-9]+\b|(?<![\w&/#])#[0-9]+\b(?![0-9a-f]*;)",
+    "the brief": r"\bthe brief\b",
+    "a place, not a machine kind": r"\b(built|measured|run|ran) here\b",
+    "a team role": r"\bthe lead'?s?\b(?! time)",
+    "an absolute machine path": r"(?<![\w.~$}>-])/(work|farm|root|home|Users)/",
+}
+REGEX = re.compile("|".join(f"(?P<p{i}>{p})" for i, p in enumerate(PATTERNS.values())),
+                   re.IGNORECASE)  # fmt: skip
+NAMES = list(PATTERNS)
+BINARY_SUFFIXES = {".png", ".pdf", ".parquet", ".gz", ".pbb", ".jar", ".xlsx", ".pyc"}
+
+
+def files_in_scope() -> list[Path]:
+    """Tracked files of the scope (git), else every file under it (a source tarball)."""
+    try:
+        out = subprocess.run(["git", "ls-files", "-z", "--", *SCOPE], cwd=ROOT,
+                             capture_output=True, check=True).stdout  # fmt: skip
+        paths = [ROOT / p for p in out.decode().split("\0") if p]
+    except (OSError, subprocess.CalledProcessError):
+        paths = []
+        for s in SCOPE:
+            p = ROOT / s
+            paths += [p] if p.is_file() else [q for q in p.rglob("*") if q.is_file()]
+    return [p for p in paths if p.is_file() and p.suffix not in BINARY_SUFFIXES
+            and p.resolve() != SELF]  # fmt: skip
+
+
+def hits(text: str) -> list[tuple[int, str, str]]:
+    """(line number, what was found, the line) for every matching line of ``text``."""
+    found = []
+    for no, line in enumerate(text.splitlines(), 1):
+        m = REGEX.search(line)
+        if m:
+            found.append((no, NAMES[int(m.lastgroup[1:])], line.strip()[:140]))
+    return found
+
+
+def test_no_process_words_or_machine_paths():
+    bad = []
+    for path in files_in_scope():
+        raw = path.read_bytes()
+        if b"\0" in raw[:4096]:
+            continue
+        for no, what, line in hits(raw.decode("utf-8", errors="replace")):
+            bad.append(f"{path.relative_to(ROOT)}:{no}: {what}: {line}")
+    assert not bad, "development-process words or machine paths:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        "measured in session 1; after this session's changes",
+        "Until session 6 the bets were capped",
+        "(issue 11: 0.090 / 0.186)",
+        "see #12 for the discussion",
+        "the issue-11 target",
+        "The brief's third example patient",
+        "a real Pulse engine built here from its public source",
+        "Cost measured here: 155 CPU-s",
+        "`hoeffding.py`, the lead's",
+        "fall back to /work/shared",
+        "export PYTHONPATH=/root/pulse/install/bin",
+        'Path("/home/user/data")',
+    ],
+)
+def test_the_patterns_catch_process_words(line):
+    assert hits(line), line
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        "a lost login session or a node failure",
+        "## Example session",
+        '@pytest.fixture(scope="session")',
+        "color: #1f77b4",
+        "PREFIX/install/bin and ../shared/data/mimic-iii-demo",
+        "results/synthetic/work/x and $HOME/work/",
+        "src/twinfalsify/work/ is fine",
+        "the lead time of a treatment",
+    ],
+)
+def test_the_patterns_leave_ordinary_words(line):
+    assert not hits(line), line
