@@ -53,7 +53,7 @@ def random_hyps(h: int, x, actions, states, manski_share: float = 0.3) -> pd.Dat
 
 
 def brute_obs(hyps, x, actions, states):
-    """Direct transcription of DESIGN.md, one trajectory at a time."""
+    """Direct transcription of docs/explanation/method.md, one trajectory at a time."""
     out = []
     for _, h in hyps.iterrows():
         codes = design.state_codes(x, states, h.outcome)

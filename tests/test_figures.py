@@ -57,7 +57,7 @@ def _png_ok(fig, path) -> None:
 
 
 def _brute_enter(d: pd.DataFrame, st, outcome: str, seq, bset):
-    """Per trajectory, by loops: N, entering, following (DESIGN.md definitions)."""
+    """Per trajectory, by loops: N, entering, following (docs/explanation/method.md)."""
     x = to_array(d, FEATURES)
     a = action_codes(d, st.actions)
     codes = state_codes(x, st.states, outcome)

@@ -12,8 +12,8 @@ from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 
 def interval_rule_rejects(q_lo, q_twin, width, n, nhat, alpha):
-    """DESIGN.md: reject H_lo when the upper (1 - alpha/2) bound of Q_twin lies below the
-    lower (1 - alpha/2) bound of Q_lo."""
+    """Reject H_lo when the upper (1 - alpha/2) bound of Q_twin lies below the lower
+    (1 - alpha/2) bound of Q_lo (docs/explanation/method.md)."""
     return q_twin + hoeffding_radius(width, nhat, alpha) < q_lo - hoeffding_radius(width, n, alpha)
 
 

@@ -2,8 +2,8 @@
 
 Every ``import`` is counted, including those inside functions (a lazy import is still a
 dependency); the parser is ``twinfalsify.provenance``, which also gives the workflow's rules
-their code fingerprints. The layers, bottom to top, are ``LAYERS`` below (README, "Where
-things live").
+their code fingerprints. The layers, bottom to top, are ``LAYERS`` below
+(docs/reference/layout.md, "Where things live").
 """
 
 from __future__ import annotations

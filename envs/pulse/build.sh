@@ -59,7 +59,7 @@ run_step() {
 # ------------------------------------------------------------------------------ packages
 # Checked on every run (not stamped). Installs with apt-get only when run as root.
 step_packages() {
-    local want=(cmake g++ libeigen3-dev libprotobuf-dev protobuf-compiler python3-dev
+    local want=(cmake g++ libeigen3-dev libprotobuf-dev protobuf-compiler python3-dev python3-venv
                 libprotobuf-java) missing=() p
     command -v javac >/dev/null || want+=(default-jdk-headless)
     for p in "${want[@]}"; do
@@ -159,7 +159,7 @@ step_configure() {
 # Only the PyPulse target (make install would build every engine, driver and test). Its
 # POST_BUILD copies PyPulse.*.so into PREFIX/install/bin. make resumes an interrupted build.
 step_compile() {
-    log "step compile: nice -n $NICE make -j$JOBS PyPulse (log: $LOGS/compile.log; 8-40 min on 2 cores, depending on their load)"
+    log "step compile: nice -n $NICE make -j$JOBS PyPulse (log: $LOGS/compile.log; 8-16 min on 2 cores, more when they are busy)"
     nice -n "$NICE" make -C "$BUILD" -j"$JOBS" PyPulse >"$LOGS/compile.log" 2>&1 \
         || { tail -n 30 "$LOGS/compile.log" >&2; die "make PyPulse failed, see $LOGS/compile.log"; }
     compgen -G "$INSTALL/bin/PyPulse*.so" >/dev/null || die "no PyPulse*.so in $INSTALL/bin after make"

@@ -22,7 +22,7 @@ from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 # TwinNodes lives in schema (a data contract), so the twin stage does not depend on this
-# module: a fix here reruns the tests, not the twin runs (code fingerprints, README)
+# module: a fix here reruns the tests, not the twin runs (code fingerprints)
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes
 
 _CHUNK_CELLS = 40_000_000  # booleans per chunk (H_chunk x n x (T + 1)): bounded memory

@@ -1,6 +1,6 @@
 """Design stage on D0: action bins, B-sets and the hypothesis parameters.
 
-Paper's case-study choices (DESIGN.md):
+Paper's case-study choices (docs/explanation/method.md):
 * actions: per dose, bin 0 = zero dose, bins 1-4 = quartiles of the non-zero
   hourly doses in D0; action code a = 5 * iv_bin + vaso_bin (25 actions). The
   twin receives the median D0 dose of each bin.

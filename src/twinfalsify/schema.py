@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-T_MAX = 4  # hourly steps after t = 0 (DESIGN.md: T = 4)
+T_MAX = 4  # hourly steps after t = 0 (docs/explanation/method.md: T = 4)
 
 STAY_ID = "stay_id"
 TIME = "t"
@@ -55,10 +55,10 @@ FEATURE_TABLE: tuple[Feature, ...] = (
 FEATURES: tuple[str, ...] = tuple(f.name for f in FEATURE_TABLE)
 FEATURE_BY_NAME: Mapping[str, Feature] = {f.name: f for f in FEATURE_TABLE}
 
-# The features a Pulse patient can be initialised with (DESIGN.md: X_0).
+# The features a Pulse patient can be initialised with (docs/explanation/method.md: X_0).
 INIT_FEATURES: tuple[str, ...] = ("age", "sex", "weight", "HR", "SysBP", "DiaBP", "RR")
 
-# Outcomes under test: 6 vitals, 8 labs and arterial pH (DESIGN.md).
+# Outcomes under test: 6 vitals, 8 labs and arterial pH (docs/explanation/method.md).
 OUTCOMES: tuple[str, ...] = (
     "HR",
     "SysBP",

@@ -1,4 +1,4 @@
-"""Sample splitting: a held-out design set D0 and the test set D (DESIGN.md).
+"""Sample splitting: a held-out design set D0 and the test set D (docs/explanation/method.md).
 
 Every data-dependent choice (action bins, B-sets, y_lo/y_up, which hypotheses)
 is made on D0 only, so that the hypotheses are fixed before D is looked at

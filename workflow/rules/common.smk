@@ -106,7 +106,7 @@ def all_outputs():
 # --- Cluster resources (threads, mem_mb, runtime) for the twin stage -----------------
 # Seconds of wall time per simulated twin-hour, per twin kind. Builtin twins are vectorised
 # numpy (milliseconds); a `command` twin is budgeted as Pulse 4.2, measured at ~150 s wall per
-# simulated hour per engine (DESIGN.md, data/pulse-reference/). Only used to size Slurm
+# simulated hour per engine (docs/reference/benchmarks.md, Pulse). Only used to size Slurm
 # requests: a local run ignores runtime.
 SECONDS_PER_TWIN_HOUR = {
     "oracle": 0.01,

@@ -9,7 +9,7 @@ q_p = theta*_(ceil(p B)), the one-sided (1 - delta) bounds are
   lower = 2 thetahat - q_{1-delta},   upper = 2 thetahat - q_delta;
 - percentile (Efron 1979): lower = q_delta,   upper = q_{1-delta}.
 
-The union rule at level alpha puts delta = alpha/2 on each side (DESIGN.md).
+The union rule at level alpha puts delta = alpha/2 on each side (docs/explanation/method.md).
 Both bounds are step functions of delta, constant on (j/B, (j+1)/B): there
 (1-indexed order statistics) the reverse-percentile rule for H_lo reads
 
@@ -31,7 +31,7 @@ The authors' code instead scans a 500-point alpha grid with level alpha (not
 alpha/2) on each side and numpy's interpolated quantiles: ``variant="authors_grid"``
 reproduces that reading for comparison only.
 
-Resampling uses the compact form of the observational sample (DESIGN.md): a
+Resampling uses the compact form of the observational sample (docs/explanation/method.md): a
 resample of n values of Y_lo picks K ~ Binomial(n, n_follow/n) followers (drawn
 uniformly with replacement among them) and n - K copies of y_lo; the same draw
 gives the Y_up resample with y_up copies. This is exactly the distribution of a

@@ -1,6 +1,6 @@
 """The paper's union rule and its p-value, shared by every interval method.
 
-Rule (DESIGN.md, Cornish et al. 2026): reject H_lo: Q_twin >= Q_lo at level alpha
+Rule (docs/explanation/method.md, Cornish et al. 2026): reject H_lo: Q_twin >= Q_lo at level alpha
 when the upper (1 - alpha/2) confidence bound of Q_twin lies strictly below the
 lower (1 - alpha/2) confidence bound of Q_lo (mirror for H_up: the upper bound
 of Q_up below the lower bound of Q_twin). By a union bound over the two one-sided

@@ -22,7 +22,8 @@ KINDS = (*BUILTIN_KINDS, "command")
 RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size",
                "fail_fast_runs", "max_restarts")
 # Runner keys that cannot change a finished run's numbers: the workflow keeps them out of
-# a shard's params, so changing them reruns no shard (README "What reruns").
+# a shard's params, so changing them reruns no shard
+# (docs/how-to/run-workflow.md, "What reruns after which change").
 EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_runs",
                   "max_restarts")
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
