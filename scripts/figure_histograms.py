@@ -18,7 +18,8 @@ def main(sm):
     alpha = float(json.loads(sm.params.testing).get("alpha", 0.05))
     ids = opts.get("hyp_ids")
     if not ids:  # one rejected and one non-rejected case
-        first = pick_hypothesis(st.results, rejected=True, prefer_long=False)
+        first = pick_hypothesis(st.results, rejected=True, prefer_long=False,
+                                run_status=st.run_status)
         ids = [first, pick_hypothesis(st.results, rejected=False, exclude=(first,))]
     cases = [histogram_data(st, int(h), alpha=alpha) for h in ids]
     save_all(outcome_histograms(cases), sm.output.png, sm.output.pdf)

@@ -27,7 +27,8 @@ def main(sm):
     testing = json.loads(sm.params.testing)
     hyp_id = opts.get("hyp_id")
     if hyp_id is None:
-        hyp_id = pick_hypothesis(st.results, rejected=True, outcome=opts.get("outcome"))
+        hyp_id = pick_hypothesis(st.results, rejected=True, outcome=opts.get("outcome"),
+                                 run_status=st.run_status)
         hyp_id = extend_to_horizon(st.results, st.hyps, hyp_id)  # show t = 1..T
     frame = longitudinal_frame(
         st, int(hyp_id), alpha=float(testing.get("alpha", 0.05)),

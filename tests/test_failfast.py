@@ -49,7 +49,7 @@ def test_stdout_logging_twin_stops_within_k_runs(tmp_path, workers):
                               fail_fast_runs=k, progress=False)
     msg = str(err.value)
     assert "\n" not in msg
-    assert f"its first {k} runs all failed" in msg
+    assert f"its first {k} runs, from {k} distinct X_0, all failed" in msg
     assert "faulty_twin.py" in msg and "--mode=garbage" in msg  # the command
     assert "stdout must carry only protocol JSON" in msg and "log line on stdout" in msg
     asked = len(log.read_text().splitlines())

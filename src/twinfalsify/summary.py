@@ -37,6 +37,7 @@ class StudyTwin:
     actions: ActionBins
     states: StateBins
     nodes: bounds.TwinNodes
+    run_status: Mapping[str, int] = None  # twin node-runs per status (runs.parquet)
 
 
 def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
@@ -56,9 +57,8 @@ def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
     d = read_parquet(paths["d"], "D")
     plan = TwinPlan.from_json(read_json(paths["plan"]))
     states = StateBins.from_json(read_json(paths["bins"]))
-    nodes = load_nodes(
-        read_parquet(paths["runs"], "twin runs"), plan, x0_frame(d, plan.x0_stay_ids)
-    )
+    runs = read_parquet(paths["runs"], "twin runs")
+    nodes = load_nodes(runs, plan, x0_frame(d, plan.x0_stay_ids))
     twin, _ = bounds.twin_side(hyps, nodes, states)
     return StudyTwin(
         hyps=hyps,
@@ -69,6 +69,7 @@ def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
         actions=ActionBins.from_json(read_json(paths["actions"])),
         states=states,
         nodes=nodes,
+        run_status={str(k): int(v) for k, v in runs["status"].value_counts().items()},
     )
 
 
@@ -103,6 +104,7 @@ def pick_hypothesis(
     outcome: str | None = None,
     prefer_long: bool = True,
     exclude: tuple[int, ...] = (),
+    run_status: Mapping[str, int] | None = None,
 ) -> int:
     """hyp_id to illustrate: a rejected (or a clearly non-rejected, testable) hypothesis.
 
@@ -111,6 +113,8 @@ def pick_hypothesis(
     sizes, so the picture shows a twin inside its bounds with data behind it. Search order:
     the wanted state in ``kind``, then in any kind, then the other state (a correct twin has
     no rejection): the figure reads the hypothesis's own rejection to title it honestly.
+    run_status: the twin's node-runs per status (``StudyTwin.run_status``), so that "no
+    testable hypothesis" can say when the cause is that no twin run succeeded.
     """
     per = rejected_any(results)
     per = per[~per["hyp_id"].isin(list(exclude))]
@@ -120,7 +124,13 @@ def pick_hypothesis(
         per = per[per["outcome"] == outcome]
     testable = per[(per["n"] > 0) & (per["nhat"] > 0)]
     if testable.empty:
-        raise ContractError("figures: no testable hypothesis (every one has n = 0 or nhat = 0)")
+        cause = ""
+        if run_status and not run_status.get("ok"):
+            counts = ", ".join(f"{k} {v}" for k, v in sorted(run_status.items()))
+            cause = (f": no twin run succeeded (node-runs by status: {counts}; "
+                     "see the twin's run_summary.json)")
+        raise ContractError(
+            f"figures: no testable hypothesis (every one has n = 0 or nhat = 0){cause}")
     in_kind = testable[testable["kind"] == kind]
     for pool in (in_kind[in_kind["rejected"] == rejected],
                  testable[testable["rejected"] == rejected], in_kind, testable):  # fmt: skip

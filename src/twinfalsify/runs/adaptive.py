@@ -41,7 +41,14 @@ from twinfalsify.inference.sequential import (
     reachable,
     twin_runs_indexed,
 )
-from twinfalsify.runs.plan import NODE_COLUMNS, TwinPlan, node_name, parse_node, simulate_jobs
+from twinfalsify.runs.plan import (
+    NODE_COLUMNS,
+    TwinPlan,
+    implausible_warning,
+    node_name,
+    parse_node,
+    simulate_jobs,
+)
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.truncation import JobBoxes
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError
@@ -141,6 +148,8 @@ def run_adaptive_shard(
     fixed = len(shard_nodes) * budget
     depth_first = sorted(shard_nodes, key=len, reverse=True)
     paths = hypothesis_paths(sub, index)
+    n_runs = n_implausible = 0  # simulated runs, and those implausible (one warning at the end)
+    first_implausible = ""
     for b in range(1, st.n_batches + 1):
         act = st.active[idx]
         if not act.any():
@@ -165,6 +174,12 @@ def run_adaptive_shard(
                   in zip(jobs, fresh, strict=True)]
         results = simulate_jobs(twin, [(node, j0 + rows) for node, rows in jobs], x0, seeds,
                                 actions, None, cw)
+        for _, status, message, _ in results:
+            n_runs += len(status)
+            bad = np.flatnonzero(status == "implausible")
+            if bad.size and not n_implausible:
+                first_implausible = str(message[bad[0]])
+            n_implausible += bad.size
         # each (node, run) from the first job that knows it: a value, or a failure (a run
         # truncated by the twin knows nothing past its last hour: another job may)
         got = []  # (node, batch rows, values, status, message, clamped)
@@ -204,6 +219,9 @@ def run_adaptive_shard(
               f": {len(idx) - running} decided, {running} undecided parameter sets; "
               f"node-runs {sim_node_runs:,} of {fixed:,} ({fixed - sim_node_runs:,} saved), "
               f"{time.monotonic() - start:.1f} s", file=log, flush=True)
+    if n_implausible:
+        print(implausible_warning(twin.name, shard, n_implausible, n_runs, first_implausible),
+              file=log, flush=True)
     runs = runs_now()
     p_lo, p_up, nhat = st.p_values(runs)
     used = st.runs_used()

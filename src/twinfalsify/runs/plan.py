@@ -134,6 +134,19 @@ def plausible(res) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return feats, status, message
 
 
+def implausible_warning(twin: str, shard: int, n_bad: int, n_runs: int,
+                        example: str) -> str | None:
+    """One console line when ``n_bad`` > 0 of a shard's ``n_runs`` runs are ``implausible``.
+
+    A twin answering in the wrong unit (temperature in F) fails every run this way; saying
+    so at the shard saves finding it in the study's summary. ``example``: one run's message.
+    """
+    if not n_bad:
+        return None
+    return (f"WARNING: twin {twin} shard {shard}: {n_bad} of {n_runs} runs implausible "
+            f"(counted as failed), e.g. {example}")
+
+
 def simulate_jobs(
     twin: Twin, jobs: list[tuple[tuple[int, ...], np.ndarray]], x0: pd.DataFrame,
     seeds: np.ndarray, actions: ActionBins, log, continue_while: list | None = None,
@@ -226,9 +239,14 @@ def run_shard(
     frames: dict[str, pd.DataFrame] = {}
     leaves = plan.shards[shard]  # may be empty: fewer first actions than shards
     jobs = [(parse_node(leaf), np.arange(m)) for leaf in leaves]
-    for (seq, _), (feats, status, message, clamped) in zip(
-        jobs, simulate_jobs(twin, jobs, x0, seeds, actions, log), strict=True
-    ):
+    results = simulate_jobs(twin, jobs, x0, seeds, actions, log)
+    status = np.concatenate([r[1] for r in results]) if results else np.empty(0, object)
+    bad = np.flatnonzero(status == "implausible")
+    if bad.size:
+        message = np.concatenate([r[2] for r in results])
+        print(implausible_warning(twin.name, shard, bad.size, status.size, message[bad[0]]),
+              file=log if log is not None else sys.stderr, flush=True)
+    for (seq, _), (feats, status, message, clamped) in zip(jobs, results, strict=True):
         for s in range(1, len(seq) + 1):
             name = node_name(seq[:s])
             vals = feats[:, s - 1, :]

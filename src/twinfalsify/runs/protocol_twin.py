@@ -88,6 +88,7 @@ class ProtocolTwin:
                 retries=self.retries, progress=self.progress, env=self.env,
                 batch_size=self.batch_size, fail_fast_runs=self.fail_fast_runs,
                 max_restarts=self.max_restarts, continue_while=continue_while,
+                check_range=True,
             )
         except ContractError as exc:  # name the twin as the config does
             raise ContractError(f"twins.{self.name}: {exc}") from None

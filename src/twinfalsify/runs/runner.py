@@ -56,7 +56,7 @@ from twinfalsify.runs.protocol import (
     decode,
     encode,
 )
-from twinfalsify.schema import FEATURES, ContractError
+from twinfalsify.schema import FEATURES, ContractError, mark_implausible
 from twinfalsify.twins.base import SimResult, empty_features
 
 PROGRESS_INTERVAL_S = 5.0  # at most one progress line per interval
@@ -69,7 +69,9 @@ DEFAULT_MAX_RESTARTS = 10  # ... or workers were restarted R times before any ru
 # a twin broken for every run (e.g. a log line on stdout) would otherwise fail all of a
 # shard's runs, restarting a worker for each, at Pulse prices days of wall time. Both
 # checks end with the first ok run: after it, failures are the twin's answers about hard
-# X_0 (whose runs come in a row, grouped by seed) and are recorded run by run.
+# X_0 and are recorded run by run. The breaker must judge the twin, not one patient: until
+# a run is ok, each X_0 (seed group) gets one run and its other runs wait, so the first K
+# runs come from K distinct X_0 (or from every X_0, when there are fewer than K).
 DEFAULT_BATCH_SIZE = 500  # runs per simulate_batch message (when the twin allows batches):
 # large enough that the per-message round trip (~ms) is negligible per run, small enough
 # that a batch's JSON (~1 kB per run) and a retry after a failed batch stay cheap
@@ -359,8 +361,10 @@ class _Pool:
         fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
         max_restarts: int = DEFAULT_MAX_RESTARTS,
         continue_while: Sequence[list] | None = None,
+        check_range: bool = False,
     ) -> None:
         self.command, self.env = command, env
+        self.check_range = check_range
         # per run: box paths a truncating twin may stop by (runs.truncation), or None
         self.continue_while = continue_while
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
@@ -368,6 +372,7 @@ class _Pool:
         self.any_ok = False
         self.restarts = 0  # worker restarts before the first ok run
         self.first_failure = ""  # "status: message" of the first failed run
+        self.failed_x0: set[int] = set()  # seeds (X_0 draws) with a failed run
         self.batch_size = batch_size
         # Runs a thread takes from the queue at a time: 1 until a hello says
         # how large a batch the twin accepts (every worker runs the same command).
@@ -384,6 +389,10 @@ class _Pool:
         self.stop = threading.Event()
         self.error: BaseException | None = None
         self.tasks: deque[np.ndarray] = deque()
+        # Until the first ok run: per worker slot, the rest of each seed group it probed
+        # (one run per X_0, see DEFAULT_FAIL_FAST_RUNS), taken back last-probed first so a
+        # save/restore twin continues the X_0 it holds.
+        self.waiting: dict[int, list[np.ndarray]] = {}
         self.workers: dict[int, _Worker] = {}
         self.started: set[int] = set()
         self.counts: Counter[str] = Counter()
@@ -468,17 +477,28 @@ class _Pool:
         self.status[i] = status
         self.message[i] = message
         self.clamped[i] = clamped
+        message = self.message[i]
+        if status == "ok" and self.check_range:
+            # a value outside the contract's range fails the run when a study stores it
+            # (runs.plan.plausible); count it as failed now, for the progress line and the
+            # breaker. The result itself is returned as the twin gave it.
+            st, msg = np.array([status], dtype=object), np.array([message], dtype=object)
+            if mark_implausible(self.features[i : i + 1].copy(), st, msg):
+                status, message = str(st[0]), str(msg[0])
         with self.lock:
             self.counts[status] += 1
             self.settled += 1
             if status == "ok":
                 self.any_ok = True
-            elif not self.first_failure:
-                self.first_failure = f"{status}: {self.message[i]}"
+            else:
+                self.failed_x0.add(int(self.seeds[i]))
+                if not self.first_failure:
+                    self.first_failure = f"{status}: {message}"
             tripped = (self.fail_fast_runs and not self.any_ok
                        and self.settled >= self.fail_fast_runs)
         if tripped:
-            self._trip(f"its first {self.fail_fast_runs} runs all failed")
+            self._trip(f"its first {self.fail_fast_runs} runs, from {len(self.failed_x0)} "
+                       "distinct X_0, all failed")
 
     def _request(self, i: int, request_id: str) -> dict[str, Any]:
         hours = int(self.hours[i])
@@ -598,19 +618,39 @@ class _Pool:
                 self._run_batch(slot, worker, runs[pos : pos + size])
             pos += size
 
+    def _next_chunk(self, slot: int) -> np.ndarray | None:
+        """The runs a worker does next (call with the lock held); None when none are left.
+
+        Whole seed groups, in plan order, up to one batch's worth of runs. While the
+        breaker is armed (no run ok yet), only the first run of each group is taken and the
+        rest waits with this slot; after the first ok run (or when nothing else is left)
+        the slot takes its waiting groups back, last probed first.
+        """
+        mine = self.waiting.setdefault(slot, [])
+        probing = bool(self.fail_fast_runs) and not self.any_ok
+        if mine and (not probing or not self.tasks):
+            return mine.pop()
+        if not self.tasks:
+            return None
+        chunk: list[np.ndarray] = []
+        taken = 0
+        while self.tasks and (not chunk or taken < self.take):
+            group = self.tasks.popleft()
+            if probing and len(group) > 1:
+                mine.append(group[1:])
+                group = group[:1]
+            chunk.append(group)
+            taken += len(group)
+        return np.concatenate(chunk)
+
     def thread_main(self, slot: int) -> None:
         try:
             while not self.stop.is_set():
                 with self.lock:
-                    if not self.tasks:
-                        break
-                    # Whole seed groups, in plan order, up to one batch's worth of runs.
-                    chunk = [self.tasks.popleft()]
-                    taken = len(chunk[0])
-                    while self.tasks and taken < self.take:
-                        chunk.append(self.tasks.popleft())
-                        taken += len(chunk[-1])
-                self._run_runs(slot, np.concatenate(chunk))
+                    chunk = self._next_chunk(slot)
+                if chunk is None:
+                    break
+                self._run_runs(slot, chunk)
         except BaseException as exc:  # noqa: BLE001 - re-raised by the caller
             with self.lock:
                 if self.error is None:
@@ -647,6 +687,7 @@ def simulate_via_protocol(
     fail_fast_runs: int = DEFAULT_FAIL_FAST_RUNS,
     max_restarts: int = DEFAULT_MAX_RESTARTS,
     continue_while: Sequence[list] | None = None,
+    check_range: bool = False,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -671,16 +712,23 @@ def simulate_via_protocol(
     Circuit breaker (ContractError naming the command, the reason and the first failed
     run's status and message): the first ``fail_fast_runs`` recorded runs all failed, or
     workers had to be restarted more than ``max_restarts`` times before any run was ok;
-    0 turns a check off. After the first ok run neither check acts.
+    0 turns a check off. After the first ok run neither check acts. Until then each X_0
+    (seed) gets one run before any gets a second, so the first ``fail_fast_runs`` runs
+    come from as many distinct X_0 as there are (up to that number): one patient the twin
+    cannot simulate never stops the shard; its runs are recorded as failed.
+
+    check_range: count a run answered ``ok`` with a value outside the trajectory contract's
+    range (``schema.mark_implausible``) as ``implausible``, a failure, in the progress line
+    and for the breaker, as it is when a study stores the runs (``runs.plan.plausible``,
+    which marks the stored status; the SimResult returned here is the twin's answer).
+    ``ProtocolTwin``, what a study uses, turns it on.
 
     Each worker gets TMPDIR = a folder of this call, removed when it returns, so
     temporary files of workers that had to be killed do not outlive it.
 
     continue_while: per run, the box paths of ``runs.truncation`` (send only to a twin
     whose hello advertises ``capabilities.truncate``): a run may come back truncated,
-    status ok with NaN after its last needed hour. (Values are checked
-    against the trajectory contract's ranges where a study stores runs,
-    ``runs.plan.run_shard``, not here.)
+    status ok with NaN after its last needed hour.
     """
     for key, value in (("fail_fast_runs", fail_fast_runs), ("max_restarts", max_restarts)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
@@ -709,7 +757,8 @@ def simulate_via_protocol(
     scratch = tempfile.mkdtemp(prefix="twinfalsify-workers-", dir=base_env.get("TMPDIR"))
     full_env = {**base_env, "TMPDIR": scratch}
     pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
-                 int(batch_size), int(fail_fast_runs), int(max_restarts), continue_while)
+                 int(batch_size), int(fail_fast_runs), int(max_restarts), continue_while,
+                 bool(check_range))
     groups = plan_groups(seeds, doses)
     pool.tasks.extend(groups)
     n_threads = min(workers, len(groups))
