@@ -536,6 +536,24 @@ def make_bets(bets: str = "mixture", orders: int | None = None,
                 else bool(running_max))
 
 
+def check_options(opts: dict) -> None:
+    """Config options of :func:`betting_test`: each value's type and range, then the bet
+    options together (:func:`make_bets`)."""
+    from twinfalsify.inference import options as o
+
+    o.number(opts, "tune_alpha", lo=0, hi=1, lo_open=True, hi_open=True, allow_none=True)
+    o.choice(opts, "bets", BETS)
+    o.integer(opts, "grid", lo=1)
+    o.number(opts, "grid_ratio", lo=1, lo_open=True)
+    o.integer(opts, "orders", lo=1, allow_none=True)
+    o.boolean(opts, "running_max", allow_none=True)
+    o.number(opts, "c", lo=0, hi=1, lo_open=True, hi_open=True, note="bet truncation")
+    o.number(opts, "tol", lo=0, lo_open=True)
+    o.integer(opts, "max_iter", lo=1)
+    make_bets(**{k: opts[k] for k in ("bets", "orders", "running_max", "grid", "grid_ratio")
+                 if k in opts})
+
+
 def betting_test(
     samples: HypothesisSamples,
     *,

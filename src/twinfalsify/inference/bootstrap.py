@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twinfalsify.inference import options
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 KINDS = ("reverse_percentile", "percentile")
@@ -257,6 +258,22 @@ def _grid_pvalue(
     with np.errstate(invalid="ignore"):
         rej = upper < lower
     return np.where(rej.any(axis=1), grid[np.argmax(rej, axis=1)], 1.0)
+
+
+MIN_RESAMPLES = 50  # p-values come in steps of 2 / n_resamples: fewer cannot reach 0.05
+
+
+def check_options(opts: dict) -> None:
+    """Config options of :func:`bootstrap_test`, types and ranges (p_floor's bound depends
+    on n_resamples, default 100)."""
+    options.integer(opts, "n_resamples", lo=MIN_RESAMPLES,
+                    note="p-values come in steps of 2 / n_resamples; the paper uses 100")
+    options.integer(opts, "min_n", lo=1, note="the paper uses 100")
+    options.choice(opts, "kind", KINDS)
+    options.choice(opts, "variant", VARIANTS)
+    b = int(opts.get("n_resamples", 100))
+    options.number(opts, "p_floor", lo=0.0, hi=2.0 / b, lo_open=True, hi_open=True,
+                   note="below the resolution 2 / n_resamples")
 
 
 def bootstrap_test(

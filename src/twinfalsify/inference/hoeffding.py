@@ -26,7 +26,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from twinfalsify.inference import options
 from twinfalsify.inference.samples import HypothesisSamples
+
+FACTOR_MIN = 2.0  # the constant of Hoeffding's two-sided union bound: smaller is invalid
+
+
+def check_options(opts: dict) -> None:
+    """Config options of :func:`hoeffding_test` (``factor``), types and ranges.
+
+    factor < 2 understates p (it is the union bound's constant, not a tuning knob): 0 would
+    reject whatever the data; larger values are valid and more conservative.
+    """
+    options.number(opts, "factor", lo=FACTOR_MIN,
+                   note="2 = Hoeffding's bound, the paper's; 4 = the authors' code")
 
 
 def hoeffding_pvalue(

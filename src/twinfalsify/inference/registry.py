@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from twinfalsify.inference.options import OptionError
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.schema import ContractError
 
@@ -32,7 +33,8 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
 
 
 def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
-    """The method ``name`` with its options bound; unknown names/options are config errors."""
+    """The method ``name`` with its options bound; unknown names/options, and values of the
+    wrong type or out of range (the method module's ``check_options``), are config errors."""
     if name not in METHODS:
         raise ContractError(
             f"testing.methods: unknown method {name!r}; choose from {', '.join(METHODS)}"
@@ -45,16 +47,17 @@ def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
             f"testing.methods.{name}: unknown option(s) {sorted(unknown)}; "
             f"allowed: {', '.join(allowed) or 'none'}"
         )
-    if name == "betting":  # option values that only make sense together: checked now
-        from twinfalsify.inference.betting import make_bets
-
-        keys = ("bets", "orders", "running_max", "grid", "grid_ratio")
-        try:
-            make_bets(**{k: opts[k] for k in keys if k in opts})
-        except (TypeError, ValueError) as e:
-            raise ContractError(f"testing.methods.betting: {e}") from None
     module, func = target.split(":")
-    fn = getattr(__import__(module, fromlist=[func]), func)
+    mod = __import__(module, fromlist=[func])
+    check = getattr(mod, "check_options", None)  # the method's own types and ranges
+    if check is not None:
+        try:
+            check(opts)
+        except OptionError as e:
+            raise ContractError(f"testing.methods.{name}.{e}") from None
+        except (TypeError, ValueError) as e:  # options that only make sense together
+            raise ContractError(f"testing.methods.{name}: {e}") from None
+    fn = getattr(mod, func)
     if seeded:
         opts["seed"] = int(seed)
     return partial(fn, **opts)
