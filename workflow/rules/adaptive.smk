@@ -65,6 +65,8 @@ rule tests_adaptive:
         summary=f"{twin_dir()}/adaptive/summary.json",
     log:
         f"{LOGS}/twins/{{twin}}/tests_adaptive.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/tests_adaptive.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

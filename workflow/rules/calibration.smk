@@ -87,6 +87,8 @@ rule calibration_report:
         coverage_pdf=f"{CAL}/figures/coverage.pdf",
     log:
         f"{CAL}/logs/report.log",
+    benchmark:
+        f"{CAL}/benchmarks/report.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

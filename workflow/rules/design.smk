@@ -14,6 +14,8 @@ rule design:
         ),
     log:
         f"{LOGS}/design.log",
+    benchmark:
+        f"{R}/benchmarks/design.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

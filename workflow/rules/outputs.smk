@@ -10,6 +10,8 @@ rule rejections_table:
         ),
     log:
         f"{LOGS}/twins/{{twin}}/rejections_table.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/rejections_table.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -34,6 +36,8 @@ rule figure_pvalues:
         pdf=f"{twin_dir()}/figures/pvalues.pdf",
     log:
         f"{LOGS}/twins/{{twin}}/figure_pvalues.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_pvalues.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -75,6 +79,8 @@ rule table_rejections_tex:
         ),
     log:
         f"{LOGS}/twins/{{twin}}/table_rejections_tex.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/table_rejections_tex.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -98,6 +104,8 @@ rule table_action_space:
         tex=f"{R}/tables/action_space.tex",
     log:
         f"{LOGS}/table_action_space.log",
+    benchmark:
+        f"{R}/benchmarks/table_action_space.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -123,6 +131,8 @@ rule figure_longitudinal:
         csv=f"{twin_dir()}/figures/longitudinal.csv",
     log:
         f"{LOGS}/twins/{{twin}}/figure_longitudinal.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_longitudinal.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -150,6 +160,8 @@ rule figure_histograms:
         pdf=f"{twin_dir()}/figures/histograms.pdf",
     log:
         f"{LOGS}/twins/{{twin}}/figure_histograms.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_histograms.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -176,6 +188,8 @@ rule figure_sample_sizes:
         pdf=f"{twin_dir()}/figures/sample_sizes.pdf",
     log:
         f"{LOGS}/twins/{{twin}}/figure_sample_sizes.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_sample_sizes.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -200,6 +214,8 @@ rule figure_propensity:
         pdf=f"{twin_dir()}/figures/propensity.pdf",
     log:
         f"{LOGS}/twins/{{twin}}/figure_propensity.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_propensity.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -225,6 +241,8 @@ rule figure_sensitivity:
         csv=f"{twin_dir()}/tables/sensitivity.csv",
     log:
         f"{LOGS}/twins/{{twin}}/figure_sensitivity.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/figure_sensitivity.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -252,6 +270,8 @@ rule figure_confounding:
         pdf=f"{R}/figures/confounding.pdf",
     log:
         f"{LOGS}/figure_confounding.log",
+    benchmark:
+        f"{R}/benchmarks/figure_confounding.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -282,6 +302,8 @@ rule summary:
         ),
     log:
         f"{LOGS}/summary.log",
+    benchmark:
+        f"{R}/benchmarks/summary.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

@@ -27,6 +27,8 @@ rule split:
         d=f"{R}/d.parquet",
     log:
         f"{LOGS}/split.log",
+    benchmark:
+        f"{R}/benchmarks/split.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

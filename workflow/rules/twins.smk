@@ -8,6 +8,8 @@ rule twin_plan:
         context=f"{R}/twin_context.json",
     log:
         f"{LOGS}/twin_plan.log",
+    benchmark:
+        f"{R}/benchmarks/twin_plan.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -64,6 +66,8 @@ rule twin_runs:
         summary=f"{twin_dir()}/run_summary.json",
     log:
         f"{LOGS}/twins/{{twin}}/runs.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/runs.tsv"
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
