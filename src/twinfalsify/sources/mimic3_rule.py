@@ -31,7 +31,8 @@ def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
     """Extract the cohort from ``cfg['path']`` (or $TWINFALSIFY_MIMIC3_DIR) with the time
     anchor ``cfg['anchor']`` (``first_vitals`` by default, see docs/how-to/mimic3.md),
     ``cfg['anchor_window_h']`` and the switches / ``cohort_variant`` preset of
-    ``options.options_from_config``; write cohort/consort.csv, cohort/missingness.csv,
+    ``options.options_from_config``, DuckDB's ``memory_limit`` and ``temp_directory``; write
+    cohort/consort.csv, cohort/missingness.csv,
     cohort/anchors.csv, cohort/stays.csv (one audit row per ICU stay) and
     cohort/options.json next to the trajectories."""
     from twinfalsify.sources.mimic3 import extract_mimic3, resolve_mimic3_dir
@@ -44,7 +45,9 @@ def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
     window = int(cfg.get("anchor_window_h") or ANCHOR_WINDOW_H)
     opts = options_from_config(cfg)
     cohort = extract_mimic3(folder, threads=int(cfg.get("threads", 2)), anchor=anchor,
-                            anchor_window_h=window, options=opts)
+                            anchor_window_h=window, options=opts,
+                            memory_limit=cfg.get("memory_limit"),
+                            temp_directory=cfg.get("temp_directory"))
     c = cohort.consort
     log.info("MIMIC-III cohort from %s, anchor %s, options %s: %s", folder, anchor,
              opts.as_dict(), ", ".join(f"{s} {n}" for s, n in

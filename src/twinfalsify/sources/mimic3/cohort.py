@@ -48,7 +48,7 @@ from twinfalsify.schema import ContractError
 
 from . import doses, hourly
 from .options import Mimic3Options
-from .tables import REQUIRED_COLUMNS, connect, data_table, diagnose
+from .tables import REQUIRED_COLUMNS, connect, data_table, diagnose, staged
 
 HOUR = pd.Timedelta(hours=1)
 AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
@@ -552,7 +552,9 @@ STEPS = ("all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortalit
 
 def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
                    anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H,
-                   options: Mimic3Options | None = None) -> Mimic3Cohort:
+                   options: Mimic3Options | None = None, memory_limit: str | None = None,
+                   temp_directory: str | Path | None = None,
+                   stage: bool = True) -> Mimic3Cohort:
     """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
 
     Trajectory row (stay, t): features over hour [T0 + t h, T0 + (t+1) h) (block means,
@@ -564,6 +566,11 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     - ``anchor="first_vitals"``: INTIME + k h for the first whole hour k < ``anchor_window_h``
       whose block holds every vital (``first_complete_vitals``); stays without such a block
       are excluded at the CONSORT step ``anchor``.
+
+    I/O (``tables``): ``memory_limit`` and ``temp_directory`` go to DuckDB; ``stage`` copies
+    the large tables once, reduced to the columns and items read, to Parquet in a temporary
+    folder (under ``temp_directory``) that every query then reads (same result, one pass
+    over the CSV instead of one per query).
 
     ``options``: the switches of ``options.Mimic3Options`` (project defaults). Every
     criterion is evaluated for every stay where it is defined (``stays`` of the result, one
@@ -577,9 +584,13 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
         raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
     folder = Path(folder)
     optional = ("OUTPUTEVENTS",) if opts.sofa == "ai_clinician" else ()
-    con = connect(folder, threads=threads, optional=optional)
+    con = connect(folder, threads=threads, optional=optional, memory_limit=memory_limit,
+                  temp_directory=temp_directory)
     try:
-        return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+        if not stage:
+            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+        with staged(con, temp_directory):
+            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
     except duckdb.Error as exc:  # damage deep in a file: name it, no traceback
         raise diagnose(folder, (*REQUIRED_COLUMNS, *optional), exc) from None
     finally:
@@ -779,6 +790,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--anchor", choices=ANCHORS, default="first_vitals")
     p.add_argument("--anchor-window-h", type=int, default=ANCHOR_WINDOW_H)
     p.add_argument("--cohort-variant", choices=list(PRESETS), default="project")
+    p.add_argument("--memory-limit", default=None, help="DuckDB memory limit, e.g. 4GB")
+    p.add_argument("--temp-dir", default=None, help="folder for staged tables and spill files")
     for k, v in CHOICES.items():
         p.add_argument(f"--{k.replace('_', '-')}", choices=v, default=None)
     a = p.parse_args(argv)
@@ -786,7 +799,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
                              anchor=a.anchor, anchor_window_h=a.anchor_window_h,
-                             options=options_from_config(cfg))
+                             options=options_from_config(cfg), memory_limit=a.memory_limit,
+                             temp_directory=a.temp_dir)
     except ContractError as exc:  # bad input: one line naming the file, no traceback
         raise SystemExit(f"ERROR: {exc}") from None
     out = Path(a.outdir)

@@ -10,6 +10,9 @@ hours needed, never loaded whole into pandas.
 from __future__ import annotations
 
 import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -100,10 +103,13 @@ def _unreadable(path: Path, exc: Exception) -> ContractError:
 
 
 def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1,
-            optional: tuple[str, ...] = ()) -> duckdb.DuckDBPyConnection:
+            optional: tuple[str, ...] = (), *, memory_limit: str | None = None,
+            temp_directory: str | os.PathLike[str] | None = None) -> duckdb.DuckDBPyConnection:
     """DuckDB connection with one view per MIMIC table (upper-case view names): ``tables``
     (default: every table of REQUIRED_COLUMNS) plus ``optional`` ones (OPTIONAL_COLUMNS).
 
+    ``memory_limit`` (DuckDB syntax, e.g. ``"4GB"``; default DuckDB's, 80 % of RAM) caps
+    DuckDB's buffers; beyond it DuckDB spills to ``temp_directory`` (default: DuckDB's).
     Each file is checked on open, cheaply (its header and first row): an unreadable file
     (empty, not gzip, truncated within the first block), a missing column or a table with a
     header and no rows raises ContractError naming the file. Damage further into a large
@@ -111,6 +117,7 @@ def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 
     con = duckdb.connect(database=":memory:")
     con.execute(f"SET threads = {int(threads)}")
     con.execute("SET enable_progress_bar = false")  # it would write to the rule's stderr
+    _settings(con, memory_limit, temp_directory)
     needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}
     for table in (*(tables or tuple(REQUIRED_COLUMNS)), *optional):
         path = find_table(folder, table)
@@ -134,6 +141,92 @@ def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 
             raise ContractError(f"{path}: header only, no rows: every MIMIC-III table the "
                                 "extraction reads has rows; the file may be cut short")
     return con
+
+
+def _settings(con: duckdb.DuckDBPyConnection, memory_limit: str | None,
+              temp_directory: str | os.PathLike[str] | None) -> None:
+    """Apply the config's DuckDB memory limit and temporary folder; ContractError naming the
+    config key when DuckDB refuses a value or the folder cannot be made."""
+    if memory_limit is not None:
+        try:
+            con.execute("SET memory_limit = ?", [str(memory_limit)])
+        except duckdb.Error as exc:
+            con.close()
+            first = str(exc).strip().splitlines()[0]
+            raise ContractError(f"config key source.mimic3.memory_limit: {memory_limit!r} is "
+                                f"not a DuckDB memory size such as '4GB' ({first})") from None
+    if temp_directory is not None:
+        path = Path(temp_directory).expanduser()
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            con.close()
+            raise ContractError(f"config key source.mimic3.temp_directory: cannot create "
+                                f"{path} ({exc.strerror})") from None
+        con.execute("SET temp_directory = ?", [str(path)])
+
+
+# ---------------------------------------------------------------- staging
+
+# Tables the extraction scans more than once. ``staged`` copies each once into a Parquet file
+# of the columns the extraction reads (REQUIRED_COLUMNS / OPTIONAL_COLUMNS), and for
+# CHARTEVENTS and LABEVENTS only the rows of ITEMIDs some query can select (``read_items``),
+# then points the view at it: the queries run unchanged on the same values (no cast is
+# applied while staging), but the gzip CSV (33 GB of CHARTEVENTS text in full MIMIC-III, of
+# which ~ 85 % are items never read) is decompressed and parsed once instead of once per query.
+STAGED = ("CHARTEVENTS", "LABEVENTS", "INPUTEVENTS_MV", "INPUTEVENTS_CV", "OUTPUTEVENTS")
+
+
+def read_items() -> dict[str, tuple[int, ...]]:
+    """Per item-filtered staged table, every ITEMID any extraction query can select: every
+    ``itemid`` of the package data tables of that source (items.csv by ``source``; for
+    CHARTEVENTS also cultures.csv) and the intubated-verbal GCS items. A query reading an
+    ITEMID outside these would see no rows for it: add the item to a data table."""
+    from .cohort import INTUBATED_VERBAL  # cohort imports this module at its top
+
+    items = data_table("items.csv")
+    chart = set(items.loc[items["source"] == "chartevents", "itemid"].astype(int))
+    chart |= set(data_table("cultures.csv")["itemid"].astype(int))
+    chart |= {int(i) for i, _ in INTUBATED_VERBAL}
+    lab = set(items.loc[items["source"] == "labevents", "itemid"].astype(int))
+    return {"CHARTEVENTS": tuple(sorted(chart)), "LABEVENTS": tuple(sorted(lab))}
+
+
+def stage(con: duckdb.DuckDBPyConnection, into: Path) -> dict[str, int]:
+    """Copy the ``STAGED`` tables open in ``con`` to Parquet files in ``into`` (needed
+    columns; CHARTEVENTS / LABEVENTS: the rows of ``read_items``, and rows whose ITEMID is
+    not an integer, so that a bad ITEMID still fails the query that casts it) and point
+    their views at the copies. Returns the rows staged per table."""
+    open_views = {r[0] for r in con.execute(
+        "SELECT view_name FROM duckdb_views() WHERE NOT internal").fetchall()}
+    items = read_items()
+    needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}
+    out = {}
+    for table in STAGED:
+        if table not in open_views:
+            continue
+        cols = ", ".join(f'"{c}"' for c in needed[table])
+        where = "TRUE"
+        if table in items:
+            ids = ", ".join(map(str, items[table]))
+            where = (f"TRY_CAST(ITEMID AS BIGINT) IN ({ids}) "
+                     "OR TRY_CAST(ITEMID AS BIGINT) IS NULL")
+        lit = "'" + str(into / f"{table}.parquet").replace("'", "''") + "'"
+        con.execute(f'COPY (SELECT {cols} FROM "{table}" WHERE {where}) TO {lit} '
+                    "(FORMAT parquet, COMPRESSION zstd)")
+        con.execute(f'CREATE OR REPLACE VIEW "{table}" AS SELECT * FROM read_parquet({lit})')
+        out[table] = con.execute(f'SELECT count(*) FROM "{table}"').fetchone()[0]
+    return out
+
+
+@contextmanager
+def staged(con: duckdb.DuckDBPyConnection,
+           temp_directory: str | os.PathLike[str] | None = None) -> Iterator[dict[str, int]]:
+    """``stage`` into a fresh folder under ``temp_directory`` (default: the system's
+    temporary folder), removed on exit; yields the rows staged per table."""
+    parent = Path(temp_directory).expanduser() if temp_directory is not None else None
+    with tempfile.TemporaryDirectory(prefix="twinfalsify-mimic3-", dir=parent) as d:
+        yield stage(con, Path(d))
 
 
 def diagnose(folder: Path, tables: tuple[str, ...], exc: Exception) -> ContractError:

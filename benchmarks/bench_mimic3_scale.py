@@ -1,0 +1,167 @@
+"""Benchmark: the MIMIC-III extraction on tables of a given scale, per stage.
+
+Runs ``extract_mimic3`` on a folder written by ``mimic3_synth.py`` and records, for each
+stage of the extraction (the stage functions of ``cohort``; nested calls are reported under
+their caller, e.g. ``max_sofa/_events``): wall time, CPU time of the whole process (user +
+system, every DuckDB thread included; load on a shared machine changes it little, unlike wall
+time) and the peak resident memory of the process during the stage (sampled every 50 ms).
+Also: the whole run's peak memory, the largest size of the DuckDB temporary folder, the load
+average during the run, and the rows of each input table. Writes one JSON file.
+
+Run:  PYTHONPATH=src python benchmarks/bench_mimic3_scale.py TABLES_DIR OUT.json [--threads 2]
+      (wrap in ``/usr/bin/time -v`` for the kernel's peak-RSS figure)
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import functools  # noqa: E402
+import json  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import duckdb  # noqa: E402
+import psutil  # noqa: E402
+
+from twinfalsify.sources.mimic3 import cohort, doses, hourly  # noqa: E402
+
+STAGES = {cohort: ("_stays", "suspected_infection", "max_sofa", "withdrawn", "_events",
+                   "_inputs", "first_complete_vitals", "_audit"),
+          hourly: ("block_means", "sample_and_hold", "knn_impute", "complete_bp"),
+          doses: ("hourly_fluid", "hourly_vasopressor")}
+
+
+def _dir_size(path: Path) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for f in files:
+            try:
+                total += os.path.getsize(os.path.join(root, f))
+            except OSError:
+                pass
+    return total
+
+
+class Sampler(threading.Thread):
+    """Peak RSS of this process (and of the current stage), temp-folder size, load."""
+
+    def __init__(self, temp_dir: Path | None) -> None:
+        super().__init__(daemon=True)
+        self.proc = psutil.Process()
+        self.temp_dir = temp_dir
+        self.peak = self.stage_peak = 0
+        self.temp_peak = 0
+        self.loads: list[float] = []
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        n = 0
+        while not self.stop.is_set():
+            rss = self.proc.memory_info().rss
+            self.peak = max(self.peak, rss)
+            self.stage_peak = max(self.stage_peak, rss)
+            if n % 20 == 0:
+                self.loads.append(os.getloadavg()[0])
+                if self.temp_dir is not None and self.temp_dir.exists():
+                    self.temp_peak = max(self.temp_peak, _dir_size(self.temp_dir))
+            n += 1
+            time.sleep(0.05)
+
+
+def instrument(sampler: Sampler) -> list[dict]:
+    """Wrap the stage functions in their modules; returns the list the records go to."""
+    records: list[dict] = []
+    stack: list[str] = []
+
+    def wrap(name, fn):
+        @functools.wraps(fn)
+        def inner(*a, **k):
+            path = "/".join([*stack, name])
+            stack.append(name)
+            outer_peak = sampler.stage_peak
+            sampler.stage_peak = psutil.Process().memory_info().rss
+            w, c = time.perf_counter(), time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                records.append({"stage": path, "wall_s": time.perf_counter() - w,
+                                "cpu_s": time.process_time() - c,
+                                "peak_rss_mb": sampler.stage_peak / 2**20})
+                sampler.stage_peak = max(outer_peak, sampler.stage_peak)
+                stack.pop()
+        return inner
+
+    for mod, names in STAGES.items():
+        for name in names:
+            setattr(mod, name, wrap(name, getattr(mod, name)))
+    return records
+
+
+def table_rows(folder: Path) -> dict[str, int]:
+    con = duckdb.connect()
+    out = {}
+    for p in sorted(folder.iterdir()):
+        if p.name.endswith((".csv.gz", ".parquet")):
+            rd = (f"read_parquet('{p}')" if p.name.endswith(".parquet") else
+                  f"read_csv('{p}', header = true, all_varchar = true)")
+            out[p.name.split(".")[0]] = con.execute(f"SELECT count(*) FROM {rd}").fetchone()[0]
+    con.close()
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("folder", type=Path)
+    p.add_argument("out", type=Path)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--memory-limit", default=None, help="DuckDB memory_limit, e.g. 4GB")
+    p.add_argument("--temp-dir", type=Path, default=None, help="DuckDB temp_directory")
+    p.add_argument("--no-count", action="store_true", help="skip counting the input rows")
+    a = p.parse_args()
+    rows = {} if a.no_count else table_rows(a.folder)
+    sampler = Sampler(a.temp_dir)
+    records = instrument(sampler)
+    extra = {}
+    if a.memory_limit or a.temp_dir:
+        extra = {"options": None}
+        kw = {k: v for k, v in (("memory_limit", a.memory_limit),
+                                ("temp_directory", str(a.temp_dir) if a.temp_dir else None))
+              if v}
+        extra = {"duckdb": kw}
+    sampler.start()
+    load0 = os.getloadavg()
+    w, c = time.perf_counter(), time.process_time()
+    res = cohort.extract_mimic3(a.folder, threads=a.threads, **extra)
+    wall, cpu = time.perf_counter() - w, time.process_time() - c
+    sampler.stop.set()
+    sampler.join()
+    out = {"folder": a.folder.name, "threads": a.threads, "rows": rows,
+           "cohort": int(res.trajectories["stay_id"].nunique()),
+           "consort": res.consort[["step", "n_stays"]].to_dict("records"),
+           "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": sampler.peak / 2**20,
+           "temp_peak_mb": sampler.temp_peak / 2**20,
+           "load_start": load0[0], "load_mean": sum(sampler.loads) / max(len(sampler.loads), 1),
+           "load_max": max(sampler.loads, default=load0[0]),
+           "cpu_count": os.cpu_count(), "ram_gb": psutil.virtual_memory().total / 2**30,
+           "stages": records}
+    a.out.write_text(json.dumps(out, indent=1, default=str) + "\n")
+    print(f"cohort {out['cohort']}; wall {wall:.1f} s, cpu {cpu:.1f} s, peak "
+          f"{out['peak_rss_mb']:.0f} MB, load {out['load_mean']:.2f}")
+    top = {}
+    for r in records:
+        if "/" not in r["stage"]:
+            t = top.setdefault(r["stage"], [0.0, 0.0, 0.0])
+            t[0] += r["wall_s"]
+            t[1] += r["cpu_s"]
+            t[2] = max(t[2], r["peak_rss_mb"])
+    for k, (wl, cp, pk) in sorted(top.items(), key=lambda kv: -kv[1][1]):
+        print(f"  {k:24s} wall {wl:8.1f} s  cpu {cp:8.1f} s  peak {pk:7.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
