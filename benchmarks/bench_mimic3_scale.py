@@ -28,9 +28,10 @@ from pathlib import Path  # noqa: E402
 import duckdb  # noqa: E402
 import psutil  # noqa: E402
 
-from twinfalsify.sources.mimic3 import cohort, doses, hourly  # noqa: E402
+from twinfalsify.sources.mimic3 import cohort, doses, hourly, tables  # noqa: E402
 
-STAGES = {cohort: ("_stays", "suspected_infection", "max_sofa", "withdrawn", "_events",
+STAGES = {tables: ("stage",),
+          cohort: ("_stays", "suspected_infection", "max_sofa", "withdrawn", "_events",
                    "_inputs", "first_complete_vitals", "_audit"),
           hourly: ("block_means", "sample_and_hold", "knn_impute", "complete_bp"),
           doses: ("hourly_fluid", "hourly_vasopressor")}
@@ -122,25 +123,21 @@ def main() -> None:
     p.add_argument("--memory-limit", default=None, help="DuckDB memory_limit, e.g. 4GB")
     p.add_argument("--temp-dir", type=Path, default=None, help="DuckDB temp_directory")
     p.add_argument("--no-count", action="store_true", help="skip counting the input rows")
+    p.add_argument("--no-stage", action="store_true", help="query the files directly")
     a = p.parse_args()
     rows = {} if a.no_count else table_rows(a.folder)
     sampler = Sampler(a.temp_dir)
     records = instrument(sampler)
-    extra = {}
-    if a.memory_limit or a.temp_dir:
-        extra = {"options": None}
-        kw = {k: v for k, v in (("memory_limit", a.memory_limit),
-                                ("temp_directory", str(a.temp_dir) if a.temp_dir else None))
-              if v}
-        extra = {"duckdb": kw}
     sampler.start()
     load0 = os.getloadavg()
     w, c = time.perf_counter(), time.process_time()
-    res = cohort.extract_mimic3(a.folder, threads=a.threads, **extra)
+    res = cohort.extract_mimic3(a.folder, threads=a.threads, memory_limit=a.memory_limit,
+                                temp_directory=a.temp_dir, stage=not a.no_stage)
     wall, cpu = time.perf_counter() - w, time.process_time() - c
     sampler.stop.set()
     sampler.join()
-    out = {"folder": a.folder.name, "threads": a.threads, "rows": rows,
+    out = {"folder": a.folder.name, "threads": a.threads, "staged": not a.no_stage,
+           "memory_limit": a.memory_limit, "rows": rows,
            "cohort": int(res.trajectories["stay_id"].nunique()),
            "consort": res.consort[["step", "n_stays"]].to_dict("records"),
            "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": sampler.peak / 2**20,
