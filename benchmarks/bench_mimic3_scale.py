@@ -10,6 +10,9 @@ average during the run, and the rows of each input table. Writes one JSON file.
 
 Run:  PYTHONPATH=src python benchmarks/bench_mimic3_scale.py TABLES_DIR OUT.json [--threads 2]
       (wrap in ``/usr/bin/time -v`` for the kernel's peak-RSS figure)
+      PYTHONPATH=src python benchmarks/bench_mimic3_scale.py --table A.json B.json ...
+      (the scaling table: per stage CPU time against CHARTEVENTS rows, a least-squares line
+      through the origin per stage and its projection to full MIMIC-III)
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import functools  # noqa: E402
+import hashlib  # noqa: E402
 import json  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
@@ -118,16 +122,71 @@ def table_rows(folder: Path) -> dict[str, int]:
     return out
 
 
+GROUPS = {"staging (one pass over the files)": ("stage",),
+          "suspected infection": ("suspected_infection",),
+          "SOFA (max over onset window)": ("max_sofa",),
+          "withdrawal": ("withdrawn",),
+          "hourly events + weight": ("_events",),
+          "hourly blocks, hold, anchor": ("block_means", "sample_and_hold", "complete_bp",
+                                          "first_complete_vitals"),
+          "1-NN imputation": ("knn_impute",),
+          "doses": ("_inputs", "hourly_fluid", "hourly_vasopressor"),
+          "audit table": ("_audit",)}
+FULL_CHARTEVENTS = 330_712_483
+
+
+def table(paths: list[Path]) -> str:
+    """Markdown scaling table from bench JSON files, with a per-stage projection to full
+    size: CPU seconds per CHARTEVENTS row (least squares through the origin) x full rows."""
+    runs = sorted((json.loads(p.read_text()) for p in paths),
+                  key=lambda r: r["rows"].get("CHARTEVENTS", 0))
+    rows = [r["rows"].get("CHARTEVENTS", 0) for r in runs]
+    head = ("| | " + " | ".join(f"{n / 1e6:.1f} M rows" for n in rows)
+            + " | projected to 330.7 M rows |")
+    lines = [head, "|---|" + "---:|" * (len(runs) + 1)]
+
+    def stage_cpu(r, names):
+        return sum(x["cpu_s"] for x in r["stages"] if x["stage"] in names)
+
+    def fit(ys):
+        num = sum(x * y for x, y in zip(rows, ys, strict=True))
+        den = sum(x * x for x in rows)
+        return num / den * FULL_CHARTEVENTS if den else float("nan")
+
+    for label, names in GROUPS.items():
+        ys = [stage_cpu(r, names) for r in runs]
+        if not any(ys):
+            continue
+        lines.append(f"| {label}, CPU s | " + " | ".join(f"{y:.1f}" for y in ys)
+                     + f" | {fit(ys):.0f} |")
+    ys = [r["cpu_s"] for r in runs]
+    lines.append("| **whole extraction, CPU s** | " + " | ".join(f"**{y:.1f}**" for y in ys)
+                 + f" | **{fit(ys):.0f}** |")
+    lines.append("| whole extraction, wall s (load) | " + " | ".join(
+        f"{r['wall_s']:.0f} ({r['load_mean']:.0f})" for r in runs) + " | |")
+    lines.append("| peak resident memory, MB | " + " | ".join(
+        f"{r['peak_rss_mb']:.0f}" for r in runs) + " | |")
+    lines.append("| staged copies + spill, peak MB | " + " | ".join(
+        f"{r['temp_peak_mb']:.0f}" for r in runs) + " | |")
+    lines.append("| ICU stays / cohort | " + " | ".join(
+        f"{r['rows'].get('ICUSTAYS', 0):,} / {r['cohort']:,}" for r in runs) + " | |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("folder", type=Path)
-    p.add_argument("out", type=Path)
+    p.add_argument("folder", type=Path, nargs="?")
+    p.add_argument("out", type=Path, nargs="?")
+    p.add_argument("--table", type=Path, nargs="+", help="print the scaling table of these")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--memory-limit", default=None, help="DuckDB memory_limit, e.g. 4GB")
     p.add_argument("--temp-dir", type=Path, default=None, help="DuckDB temp_directory")
     p.add_argument("--no-count", action="store_true", help="skip counting the input rows")
     p.add_argument("--no-stage", action="store_true", help="query the files directly")
     a = p.parse_args()
+    if a.table:
+        print(table(a.table))
+        return
     rows = {} if a.no_count else table_rows(a.folder)
     sampler = Sampler(a.temp_dir)
     records = instrument(sampler)
@@ -142,6 +201,11 @@ def main() -> None:
     out = {"folder": a.folder.name, "threads": a.threads, "staged": not a.no_stage,
            "memory_limit": a.memory_limit, "rows": rows,
            "cohort": int(res.trajectories["stay_id"].nunique()),
+           # equal digests = equal outputs (staged against --no-stage runs of the same tables)
+           "digest": {f: hashlib.sha256(getattr(res, f).to_csv(index=False).encode()
+                                        ).hexdigest()[:16]
+                      for f in ("trajectories", "consort", "missingness", "anchors", "imputed",
+                                "stays")},
            "consort": res.consort[["step", "n_stays"]].to_dict("records"),
            "wall_s": wall, "cpu_s": cpu, "peak_rss_mb": sampler.peak / 2**20,
            "temp_peak_mb": sampler.temp_peak / 2**20,
