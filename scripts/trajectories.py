@@ -16,6 +16,10 @@ def main(sm):
         from twinfalsify.sources.synthetic import generate
 
         traj = generate(source.get("synthetic"), seed=int(sm.params.seed))
+    elif source["kind"] == "table":
+        from twinfalsify.sources.table import read_table
+
+        traj = read_table(source["table"]["path"])
     else:
         from twinfalsify.sources.mimic3_rule import extract_for_study
 

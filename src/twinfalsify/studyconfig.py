@@ -9,6 +9,8 @@ than copies of them:
 - ``testing.methods``: every method and option is known (``inference.registry.make``);
 - ``design.quantiles``: y_lo < y_up (the bounds are [q_lo, q_up] quantiles of D0);
 - ``figures.*.outcome``: an outcome under test (``schema.OUTCOMES``);
+- ``source.table``: the table files exist and have the contract's columns
+  (``sources.table.check_headers``; their values are checked by the source rule, first);
 - ``twins.<name>``: the spec builds (``runs.registry.check_spec``: features of shift/scale,
   doses of dose_effect, a command for kind command, a synthetic source for oracle/biased).
 """
@@ -35,6 +37,9 @@ def semantic_error(config: Mapping[str, Any]) -> str | None:
 
     Assumes ``config`` passed the schema (``io.config_error``).
     """
+    problem = source_error(config.get("source") or {})
+    if problem:
+        return problem
     testing = config.get("testing", {})
     for name, opts in (testing.get("methods") or {}).items():
         try:
@@ -55,6 +60,25 @@ def semantic_error(config: Mapping[str, Any]) -> str | None:
             check_spec(name, spec, config.get("source", {}))
         except ContractError as exc:
             return f"config key {exc}"
+    return None
+
+
+def source_error(source: Mapping[str, Any]) -> str | None:
+    """A table source without a path, or whose files are missing or lack a contract
+    column, as one line; None otherwise (other kinds: None)."""
+    if source.get("kind") != "table":
+        return None
+    path = (source.get("table") or {}).get("path")
+    if not path:
+        return ("config key source.table.path: kind table needs the path of your "
+                "trajectories (a Parquet or CSV file, or a folder of them)")
+    from twinfalsify.sources.table import check_headers
+
+    try:
+        check_headers(path)
+    except ContractError as exc:
+        return f"config key source.table.path: {exc}".replace(
+            "source.table.path: source.table.path: ", "source.table.path: ")
     return None
 
 
