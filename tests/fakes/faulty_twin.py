@@ -33,9 +33,19 @@ equals R). The first matching mode wins. Per-run modes:
     batch_short    in a simulate_batch answer, leave this run's result out (the
                    answer then has too few results); a plain simulate is answered
                    normally
+Faults the conformance check (``python -m twinfalsify.runs.check``) must name:
+
+    chatty          answer, then write a log line on stdout (two lines for one request)
+    nondeterministic  add fresh random noise to every value (equal seeds, unequal runs)
+    lookahead       hour h depends on the doses of later hours (a prefix run differs)
+    batch_differs   inside a simulate_batch, HR is 1 /min higher than in a plain simulate
+    stale_restore   reuse the hours cached for the seed whatever the doses (a save/restore
+                    keyed on X_0 alone); advertise it with --save-restore
+    early_truncate  with continue_while, stop after hour 1 even when a path still holds
 Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 ``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2),
-``no_hello`` (exit at once).
+``no_hello`` (exit at once), ``no_bye`` (shutdown is ignored: no bye, no exit until
+stdin closes), ``silent_unknown`` (an unknown op gets no answer).
 
 ``--batch N`` advertises ``capabilities.batch: N`` and answers
 ``simulate_batch`` messages run by run with the same modes: ``crash`` and
@@ -62,6 +72,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import random
 import sys
 import time
 from collections.abc import Sequence
@@ -76,9 +87,12 @@ RUN_MODES = (
     "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
     "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
     "batch_short", "implausible", "negative",
+    "chatty", "nondeterministic", "lookahead", "batch_differs", "stale_restore",
+    "early_truncate",
 )
 DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
-TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello")
+TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello", "no_bye",
+              "silent_unknown")
 
 
 def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
@@ -96,6 +110,7 @@ def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
 
 
 _PREFIXES: dict[str, Any] = {"seed": None, "done": set()}
+_STALE: dict[int, list[dict]] = {}  # stale_restore: hours cached per seed, doses ignored
 
 
 def _log_engine_hours(path: Path, seed: int, doses: Sequence[Sequence[float]]) -> None:
@@ -152,8 +167,23 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
     hours = expected(x0, doses[:hours_asked], seed, args.wobble)
     cut = hours_asked
-    if args.truncate and msg.get("continue_while") is not None and mode == "ok":
-        cut = hours_needed(parse_paths(msg["continue_while"]), hours, hours_asked)
+    if mode == "lookahead":  # every hour sees the whole request's IV total
+        total = sum(float(d[0]) for d in doses[:hours_asked])
+        hours = [{f: v if f in DEMOGRAPHICS else v + 1e-4 * total for f, v in h.items()}
+                 for h in hours]
+    elif mode == "nondeterministic":
+        hours = [{f: v if f in DEMOGRAPHICS else v + 0.01 * random.random()
+                  for f, v in h.items()} for h in hours]
+    elif mode == "batch_differs" and batch:
+        hours = [{**h, "HR": h["HR"] + 1.0} for h in hours]
+    elif mode == "stale_restore":
+        cached = _STALE.setdefault(seed, [])
+        hours = cached[:hours_asked] + hours[len(cached):]
+        cached.extend(hours[len(cached):])
+    if args.truncate and msg.get("continue_while") is not None and mode in (
+            "ok", "early_truncate"):
+        cut = (1 if mode == "early_truncate" else
+               hours_needed(parse_paths(msg["continue_while"]), hours, hours_asked))
     if args.engine_hours is not None:
         _log_engine_hours(args.engine_hours, seed, doses[:cut])
     answer: dict[str, Any] = {"op": "result", "id": msg["id"], "status": "ok",
@@ -225,6 +255,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="scale hour h's features by 1 + W (-1)^(h + seed)")
     parser.add_argument("--truncate", action="store_true",
                         help="advertise capabilities.truncate and stop runs no path needs")
+    parser.add_argument("--save-restore", action="store_true",
+                        help="advertise capabilities.save_restore (the answers do not change)")
     args = parser.parse_args(argv)
     modes = _parse_modes(args.mode)
     twin_modes = {m for m, _ in modes if m in TWIN_MODES}
@@ -239,6 +271,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         out.write(encode(message))
         out.flush()
 
+    def send_log(text: str) -> None:  # a log line where only protocol messages belong
+        out.write(text + "\n")
+        out.flush()
+
     for line in sys.stdin:
         if not line.strip():
             continue
@@ -248,6 +284,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"faulty: {exc}", file=sys.stderr, flush=True)
             continue
         if msg["op"] == "shutdown":
+            if "no_bye" in twin_modes:
+                print("faulty: no_bye mode, ignoring shutdown", file=sys.stderr, flush=True)
+                continue
             send({"op": "bye"})
             return 0
         if msg["op"] == "hello":
@@ -256,7 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 feats = [f for f in feats if f["name"] != "HR"]
             if "bad_units" in twin_modes:
                 feats = [{**f, "unit": "Hz"} if f["name"] == "HR" else f for f in feats]
-            caps: dict[str, Any] = {"save_restore": False}
+            caps: dict[str, Any] = {"save_restore": bool(args.save_restore)}
             if args.max_hours is not None:
                 caps["max_hours"] = args.max_hours
             if args.batch is not None:
@@ -268,13 +307,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "features": feats, "capabilities": caps})
             continue
         if msg["op"] == "simulate_batch":
-            results, raw = [], None
+            results, raw, chatty = [], None, False
             for request in msg["requests"]:
                 try:
                     answer, mode = _answer(request, modes, args, len(msg["requests"]))
                 except _RawFault as fault:
                     raw = raw or fault.mode
                     continue
+                chatty = chatty or mode == "chatty"
                 if mode != "batch_short":
                     results.append(answer)
             batch_answer = {"op": "results", "results": results}
@@ -286,15 +326,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                 out.flush()
             else:
                 send(batch_answer)
+                if chatty:
+                    send_log("INFO simulated a batch")
             continue
         if msg["op"] == "simulate" and args.log_requests is not None:
             with args.log_requests.open("a") as fh:
                 fh.write(f"{msg['seed']}\n")
         if msg["op"] != "simulate":
-            send({"op": "error", "message": f"unknown op {msg['op']!r}"})
+            if "silent_unknown" not in twin_modes:
+                send({"op": "error", "message": f"unknown op {msg['op']!r}"})
             continue
         try:
-            answer, _ = _answer(msg, modes, args)
+            answer, mode = _answer(msg, modes, args)
         except _RawFault as fault:
             if fault.mode == "garbage":
                 out.write("this is not JSON, it is a log line on stdout\n")
@@ -306,6 +349,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             out.flush()
             continue
         send(answer)
+        if mode == "chatty":
+            send_log(f"INFO simulated {msg['id']}")
     return 0
 
 

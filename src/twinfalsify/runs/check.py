@@ -1,0 +1,602 @@
+"""Conformance check for a twin: does it speak the twin protocol the way a study needs?
+
+    python -m twinfalsify.runs.check --spec '{"kind": "command", "command": "python my_twin.py"}'
+    python -m twinfalsify.runs.check --config config/mine.yaml --twin mine
+
+runs a short battery against the twin's command and prints one row per check (pass, fail
+or skip) with, for each failure, what to change. Exit code 0 when nothing failed, 1
+otherwise, 2 when the twin cannot be named (bad spec or config). The checks use the
+study's own protocol client (``runs.runner._Worker``, ``runs.protocol.check_hello`` and
+``check_result``), so a twin that passes them is accepted by a study's runs:
+
+hello            the hello answer: protocol version, name and version strings, every
+                 feature of the contract with its exact unit, well-formed capabilities
+one answer       every request gets exactly one line (nothing else on stdout), an unknown
+                 op an error answer, and the twin keeps serving
+protocol         every simulate answer follows the rules (id, status, hours, features)
+simulates        runs from a few shipped X_0 (synthetic-world patients) under three
+                 dose sequences: at least one ok
+ranges           every value inside the trajectory contract's range
+deterministic    the same request twice (also on a fresh process) gives the same answer
+prefix           a run of the first hours equals those hours of the longer run (the
+                 randomness of hour h may depend only on seed and doses of hours 1..h)
+batch            simulate_batch answers equal the single runs (if ``batch`` > 1)
+save/restore     a run branched from a shared prefix equals the same run alone (if
+                 ``save_restore``)
+truncation       a truncated run keeps the hours a path still needs and equals the full
+                 run there (if ``truncate``)
+time             the slowest run against ``timeout_s`` (fails above half of it)
+shutdown         ``shutdown`` is answered ``bye`` and the process exits with code 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinfalsify.runs.protocol import ProtocolError, check_hello, check_result, check_results
+from twinfalsify.runs.runner import (
+    SHUTDOWN_GRACE_S,
+    STARTUP_TIMEOUT_S,
+    _Worker,
+    _WorkerDied,
+    _WorkerTimeout,
+    resolve_command,
+)
+from twinfalsify.schema import FEATURE_TABLE, FEATURES, STAY_ID, T_MAX, TIME, ContractError
+
+UNITS = {f.name: f.unit for f in FEATURE_TABLE}
+DEFAULT_TIMEOUT_S = 60.0  # per run, when the spec gives no timeout_s
+QUIET_S = 0.2  # how long to listen for stray stdout lines after an answer
+# Dose sequences every X_0 is run under: none, fluids only, fluids and a vasopressor
+# (iv_fluid mL/h, vasopressor ug/kg/min per hour), within the ranges a study sends.
+DOSES = (
+    ((0.0, 0.0),) * T_MAX,
+    ((250.0, 0.0), (250.0, 0.0), (100.0, 0.0), (0.0, 0.0)),
+    ((100.0, 0.1), (100.0, 0.2), (50.0, 0.3), (50.0, 0.3)),
+)
+BRANCH = ((100.0, 0.1), (100.0, 0.2), (0.0, 0.0), (500.0, 0.0))  # shares 2 hours with DOSES[2]
+
+
+@dataclass
+class Outcome:
+    """One row of the report: ``ok`` True (pass), False (fail) or None (skipped)."""
+
+    name: str
+    ok: bool | None
+    detail: str
+    fix: str = ""
+
+
+FIXES = {
+    "starts": "make the command start the twin from a shell as written (absolute paths or "
+              "paths relative to where the study runs; 'python' means the study's Python)",
+    "hello": "answer the first line {\"op\": \"hello\", ...} with {\"op\": \"hello\", \"ok\": "
+             "true, \"name\", \"version\", \"protocol\": 1, \"features\": [{\"name\", \"unit\"} "
+             "for all 18 contract features, units exactly as in docs/twin-protocol.md], "
+             "\"capabilities\": {...}}",
+    "one answer": "write exactly one JSON line per request and flush; send logs to stderr "
+                  "(print(..., file=sys.stderr)); answer an unknown op with {\"op\": "
+                  "\"error\", \"message\": ...}",
+    "protocol": "echo the request's id, use a status of ok | init_failed | irreversible | "
+                "error, give exactly 'hours' hour objects with status ok, each with every "
+                "declared feature as a finite number",
+    "simulates": "build a patient from x0 (clamp what your model cannot take and report it "
+                 "in 'clamped') and simulate the doses; turn exceptions into status error "
+                 "with a message",
+    "ranges": "convert to the contract's units (e.g. degC, mg/dL for glucose and calcium, "
+              "mmol/L for electrolytes); a value outside the range is stored as a failed run",
+    "deterministic": "draw every random number from a generator seeded by the request's "
+                     "seed (and the doses so far), never from the clock or a global state",
+    "prefix": "make hour h depend only on x0, seed and the doses of hours 1..h (no look "
+              "ahead at later doses, no randomness consumed per request length)",
+    "batch": "answer simulate_batch with the result each request gets alone, in order; or "
+             "drop 'batch' from the capabilities",
+    "save/restore": "restore the state saved after the shared dose prefix of the same x0 "
+                    "and seed (key the cache on seed and doses); or advertise "
+                    "save_restore: false",
+    "truncation": "stop only after the hours some continue_while path still needs "
+                  "(runs.truncation.hours_needed) and answer the same values as the full "
+                  "run; or drop 'truncate' from the capabilities",
+    "time": "raise the twin's timeout_s in the config, or make a run faster",
+    "shutdown": "answer {\"op\": \"shutdown\"} with {\"op\": \"bye\"}, then exit with code 0",
+}
+
+
+def shipped_x0(n: int = 4, seed: int = 11) -> list[dict[str, float]]:
+    """X_0 of ``n`` synthetic-world patients: the median, then the extremes of MeanBP and
+    HR in a 400-stay draw (varied physiology, every value in the contract's range)."""
+    from twinfalsify.sources.synthetic import generate
+
+    x0 = generate({"n_stays": 400}, seed=seed)
+    x0 = x0[x0[TIME] == 0].set_index(STAY_ID)[list(FEATURES)]
+    med = (x0 - x0.median()).abs().div(x0.std() + 1e-12).sum(axis=1).idxmin()
+    picks = [med, x0["MeanBP"].idxmin(), x0["MeanBP"].idxmax(), x0["HR"].idxmax()]
+    out, seen = [], set()
+    for sid in picks:
+        if sid not in seen:
+            seen.add(sid)
+            out.append({f: float(x0.at[sid, f]) for f in FEATURES})
+    return out[:n]
+
+
+def x0_from_table(path: str | Path, n: int = 4) -> list[dict[str, float]]:
+    """X_0 (hour 0) of the first ``n`` stays of a trajectory table (``sources.table``)."""
+    from twinfalsify.sources.table import read_table
+
+    traj = read_table(path)
+    first = traj[traj[TIME] == 0].head(n)
+    return [{f: float(v) for f, v in zip(FEATURES, row, strict=True)}
+            for row in first[list(FEATURES)].to_numpy()]
+
+
+@dataclass
+class _Run:
+    """One simulate request and what came back."""
+
+    request: dict[str, Any]
+    status: str = ""
+    values: np.ndarray | None = None  # (hours, F) contract order
+    seconds: float = 0.0
+    problem: str = ""  # protocol breach, crash or timeout, as one phrase
+    stray: list[str] = field(default_factory=list)  # stdout lines after the answer
+
+
+@dataclass
+class Checker:
+    """Drives twin processes for the checks; keeps every failure as an Outcome."""
+
+    command: list[str]
+    env: dict[str, str] | None
+    timeout_s: float
+    outcomes: list[Outcome] = field(default_factory=list)
+    hello: dict[str, Any] = field(default_factory=dict)
+    _workers: list[_Worker] = field(default_factory=list)
+    _worker: _Worker | None = None  # the process the battery runs on
+    _ids: int = 0
+
+    # -- plumbing ----------------------------------------------------------------------
+    def add(self, name: str, ok: bool | None, detail: str) -> None:
+        self.outcomes.append(Outcome(name, ok, detail, FIXES.get(name, "") if ok is False
+                                     else ""))
+
+    def start(self) -> _Worker:
+        worker = _Worker(self.command, self.env)
+        self._workers.append(worker)
+        return worker
+
+    def stray(self, worker: _Worker) -> list[str]:
+        """Lines the twin wrote after its answer (there must be none)."""
+        time.sleep(QUIET_S)
+        lines = []
+        while not worker.lines.empty():
+            line = worker.lines.get_nowait()
+            if line is None:
+                worker.lines.put(None)  # keep the end-of-stream mark for the next read
+                break
+            if line.strip():
+                lines.append(line.rstrip("\n"))
+        return lines
+
+    def request(self, x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
+                **extra: Any) -> dict[str, Any]:
+        self._ids += 1
+        return {"op": "simulate", "id": f"check.{self._ids}", "x0": x0,
+                "doses": [list(d) for d in doses], "hours": len(doses), "seed": seed, **extra}
+
+    def simulate(self, worker: _Worker, request: dict[str, Any]) -> _Run:
+        """Send one request; a crash, hang or broken answer is the run's ``problem``."""
+        run = _Run(request)
+        t0 = time.monotonic()
+        try:
+            msg = worker.ask(request, self.timeout_s)
+            run.seconds = time.monotonic() - t0
+            res = check_result(msg, request["id"], request["hours"], FEATURES,
+                               self.hello["declared_units"], FEATURES,
+                               request.get("continue_while"))
+        except _WorkerTimeout:
+            run.seconds = time.monotonic() - t0
+            run.problem = f"no answer within timeout_s = {self.timeout_s:g} s"
+            worker.kill()
+            return run
+        except _WorkerDied as exc:
+            run.problem = f"the twin exited during the run ({exc})"
+            return run
+        except ProtocolError as exc:
+            run.problem = f"broken answer: {exc}"
+            worker.kill()  # its stream may be out of step, as in a study
+            return run
+        run.status, run.values = res.status, res.values
+        run.stray = self.stray(worker)
+        if res.status != "ok":
+            run.problem = ""  # a failure status is a legal answer
+            run.status = f"{res.status}: {res.message}".strip(": ")
+        return run
+
+    def close_all(self) -> None:
+        for worker in self._workers:
+            if worker.proc.returncode is None:
+                worker.kill()
+
+    # -- the checks --------------------------------------------------------------------
+    def check_hello(self) -> _Worker | None:
+        """Start the first worker and check its hello; None when nothing else can run."""
+        try:
+            resolve_command(self.command, self.env)
+            worker = self.start()
+        except (FileNotFoundError, PermissionError, ContractError) as exc:
+            self.add("starts", False, str(exc))
+            return None
+        try:
+            msg = worker.ask({"op": "hello", "protocol": 1},
+                             max(self.timeout_s, STARTUP_TIMEOUT_S))
+        except _WorkerTimeout:
+            self.add("hello", False, f"no hello answer within "
+                     f"{max(self.timeout_s, STARTUP_TIMEOUT_S):g} s")
+            return None
+        except _WorkerDied as exc:
+            self.add("starts", False, f"the twin exited before answering hello: {exc}")
+            return None
+        except ProtocolError as exc:
+            self.add("hello", False, f"hello answer: {exc}")
+            return None
+        try:
+            self.hello = check_hello(msg, FEATURES, UNITS)
+        except ProtocolError as exc:
+            self.add("hello", False, str(exc))
+            return None
+        caps = self.hello["capabilities"]
+        shown = {k: v for k, v in caps.items() if v not in (None, False)}
+        self.add("hello", True, f"{self.hello['name']} {self.hello['version']}, "
+                 f"{len(self.hello['declared_units'])} features, capabilities "
+                 f"{json.dumps(shown) if shown else 'none'}")
+        max_hours = caps.get("max_hours")
+        if max_hours is not None and max_hours < T_MAX:
+            self.add("hello", False, f"max_hours {max_hours} < T = {T_MAX}: a study asks for "
+                     f"up to {T_MAX} hours (or set design.horizon <= {max_hours})")
+        return worker
+
+    def run_battery(self, worker: _Worker, x0s: list[dict[str, float]]) -> list[_Run]:
+        """Every X_0 under every dose sequence; checks protocol, stdout, statuses, ranges."""
+        hours = min(T_MAX, self.hello["capabilities"].get("max_hours") or T_MAX)
+        runs, stray = [], []
+        pairs = [(i, x0, j, doses) for i, x0 in enumerate(x0s) for j, doses in enumerate(DOSES)]
+        for i, x0, j, doses in pairs:
+            if sum("timeout" in r.problem for r in runs) >= 2:
+                break  # each costs timeout_s: two say enough
+            run = self.simulate(worker, self.request(x0, doses[:hours], 1000 + 10 * i + j))
+            runs.append(run)
+            if run.stray:
+                stray.append(f"after the answer to {run.request['id']}: {run.stray[0]!r}")
+            if run.problem:  # a new process, as a study's runner starts one
+                worker = self.fresh()
+        self._worker = worker
+        broken = [r for r in runs if r.problem and "timeout" not in r.problem]
+        self.add("protocol", not broken,
+                 f"{len(runs) - len(broken)} of {len(runs)} answers follow the protocol"
+                 + (f"; first: {broken[0].problem}" if broken else ""))
+        # one request = one answer: stray lines, and an unknown op answered with an error
+        unknown = self._unknown_op(worker)
+        problems = stray + ([unknown] if unknown else [])
+        self.add("one answer", not problems,
+                 problems[0] if problems else "one line per request, unknown op answered")
+        ok = [r for r in runs if r.status == "ok"]
+        failed = [r for r in runs if r.status and r.status != "ok"]
+        detail = f"{len(ok)} of {len(runs)} runs ok ({len(x0s)} X_0 x {len(DOSES)} dose " \
+                 f"sequences, {hours} h)"
+        if failed:
+            detail += f"; {len(failed)} answered {failed[0].status!r}"
+        if len(runs) < len(pairs):
+            detail += f"; stopped after {len(runs)} of {len(pairs)} runs (2 timeouts)"
+        self.add("simulates", bool(ok), detail)
+        out = []
+        for r in ok:
+            lo = np.array([f.lo for f in FEATURE_TABLE])
+            hi = np.array([f.hi for f in FEATURE_TABLE])
+            with np.errstate(invalid="ignore"):
+                bad = np.argwhere((r.values < lo) | (r.values > hi))
+            if len(bad):
+                h, k = bad[0]
+                feat = FEATURE_TABLE[k]
+                out.append(f"{r.request['id']} hour {h + 1}: {feat.name} = "
+                           f"{r.values[h, k]:g} outside [{feat.lo:g}, {feat.hi:g}] {feat.unit}")
+        if ok:
+            self.add("ranges", not out, out[0] if out else
+                     f"every value of {len(ok)} ok runs inside the contract's ranges")
+        else:
+            self.add("ranges", None, "no ok run to look at")
+        timed_out = [r for r in runs if "timeout" in r.problem]
+        slowest = max((r.seconds for r in runs), default=0.0)
+        if timed_out:
+            self.add("time", False, f"{len(timed_out)} run(s) without an answer within "
+                     f"timeout_s = {self.timeout_s:g} s")
+        else:
+            self.add("time", slowest <= 0.5 * self.timeout_s,
+                     f"slowest run {slowest:.3g} s for {hours} h, timeout_s {self.timeout_s:g}"
+                     f" s" + (" (more than half of it)" if slowest > 0.5 * self.timeout_s
+                              else ""))
+        return runs
+
+    def _hello_quietly(self, worker: _Worker) -> None:
+        try:
+            worker.ask({"op": "hello", "protocol": 1}, max(self.timeout_s, STARTUP_TIMEOUT_S))
+        except (_WorkerTimeout, _WorkerDied, ProtocolError):
+            pass
+
+    def _unknown_op(self, worker: _Worker) -> str:
+        if worker.proc.poll() is not None:
+            return ""
+        try:
+            msg = worker.ask({"op": "conformance_check_unknown_op"}, min(self.timeout_s, 5.0))
+        except _WorkerTimeout:
+            worker.kill()
+            return "no answer to an unknown op (answer {\"op\": \"error\", ...})"
+        except (_WorkerDied, ProtocolError) as exc:
+            worker.kill()
+            return f"unknown op: {exc}"
+        if msg.get("op") != "error":
+            return f"unknown op answered with op {msg.get('op')!r}, expected 'error'"
+        return ""
+
+    def main(self) -> _Worker:
+        """The process the battery ran on, or a new one if it had to be stopped."""
+        if self._worker is None or self._worker.proc.poll() is not None:
+            self._worker = self.fresh()
+        return self._worker
+
+    def fresh(self) -> _Worker:
+        worker = self.start()
+        self._hello_quietly(worker)
+        return worker
+
+    def same(self, a: _Run, b: _Run, hours: int | None = None) -> str:
+        """'' when the runs agree (status and every value of the first ``hours``)."""
+        if a.problem or b.problem:
+            return a.problem or b.problem
+        if a.status != b.status:
+            return f"status {a.status!r} vs {b.status!r}"
+        va, vb = a.values[:hours], b.values[:hours]
+        if va.shape != vb.shape:
+            return f"{len(va)} vs {len(vb)} hours"
+        diff = np.argwhere(~((va == vb) | (np.isnan(va) & np.isnan(vb))))
+        if len(diff):
+            h, k = diff[0]
+            return f"hour {h + 1} {FEATURES[k]}: {va[h, k]:.17g} vs {vb[h, k]:.17g}"
+        return ""
+
+    def check_determinism(self, ref: _Run) -> None:
+        again = self.simulate(self.main(), dict(ref.request, id="check.again"))
+        other = self.simulate(self.fresh(), dict(ref.request, id="check.fresh"))
+        diff = self.same(ref, again) or self.same(ref, other)
+        self.add("deterministic", not diff, diff and f"same request, same seed: {diff}"
+                 or "same request twice and on a fresh process: identical answers")
+
+    def check_prefix(self, ref: _Run) -> None:
+        req = ref.request
+        short = self.simulate(self.main(), self.request(req["x0"], req["doses"][:2],
+                                                         req["seed"]))
+        diff = self.same(ref, short, 2)
+        self.add("prefix", not diff, diff and f"2-hour run vs the first 2 hours of a "
+                 f"{req['hours']}-hour run: {diff}" or "a 2-hour run equals the first 2 hours "
+                 "of the 4-hour run")
+
+    def check_batch(self, runs: list[_Run]) -> None:
+        size = int(self.hello["capabilities"].get("batch", 1))
+        if size <= 1:
+            self.add("batch", None, "not advertised (the study sends one run per message)")
+            return
+        singles = [r for r in runs if not r.problem][:min(size, 6)]
+        if not singles:
+            self.add("batch", None, "no answered run to compare a batch with")
+            return
+        requests = [dict(r.request, id=f"batch.{k}") for k, r in enumerate(singles)]
+        worker = self.main()
+        try:
+            msg = worker.ask({"op": "simulate_batch", "requests": requests},
+                             self.timeout_s * len(requests))
+            results = check_results(msg, len(requests))
+            diffs = []
+            for k, (req, res, single) in enumerate(zip(requests, results, singles,
+                                                      strict=True)):
+                got = check_result(res, req["id"], req["hours"], FEATURES,
+                                   self.hello["declared_units"], FEATURES)
+                status = got.status if got.status == "ok" else \
+                    f"{got.status}: {got.message}".strip(": ")
+                d = self.same(single, _Run(req, status, got.values))
+                if d and not (single.status != "ok" and status.split(":")[0]
+                              == single.status.split(":")[0]):
+                    diffs.append(f"run {k}: {d}")
+            stray = self.stray(worker)
+            if stray:
+                diffs.append(f"a line after the batch answer: {stray[0]!r}")
+        except _WorkerTimeout:
+            worker.kill()
+            diffs = [f"no answer to a batch of {len(requests)} within "
+                     f"{self.timeout_s * len(requests):g} s"]
+        except (_WorkerDied, ProtocolError) as exc:
+            worker.kill()
+            diffs = [f"batch answer: {exc}"]
+        self.add("batch", not diffs, diffs[0] if diffs else
+                 f"a batch of {len(requests)} equals the runs one by one")
+
+    def check_save_restore(self, x0: dict[str, float]) -> None:
+        if not self.hello["capabilities"].get("save_restore"):
+            self.add("save/restore", None, "not advertised")
+            return
+        worker = self.main()
+        first = self.simulate(worker, self.request(x0, DOSES[2], 77))
+        branched = self.simulate(worker, self.request(x0, BRANCH, 77))
+        alone = self.simulate(self.fresh(), self.request(x0, BRANCH, 77))
+        diff = self.same(alone, branched) or first.problem
+        self.add("save/restore", not diff, diff and f"a run sharing 2 hours with the previous "
+                 f"run vs the same run alone: {diff}" or "a run branched from a shared "
+                 "prefix equals the same run alone")
+
+    def check_truncation(self, x0: dict[str, float]) -> None:
+        if not self.hello["capabilities"].get("truncate"):
+            self.add("truncation", None, "not advertised")
+            return
+        worker = self.main()
+        full = self.simulate(worker, self.request(x0, DOSES[1], 91))
+        notes = []
+        # a path that holds for 2 hours needs 3; one that never holds needs 1
+        for paths, need in (([[["HR", "any", 0.0], ["HR", "any", 0.0]]], 3),
+                            ([[["HR", "<=", -1.0]]], 1)):
+            run = self.simulate(worker, self.request(x0, DOSES[1], 91, continue_while=paths))
+            if run.problem:
+                notes.append(run.problem)
+                break
+            n = len(run.values)
+            diff = self.same(full, run, n) if n else ""
+            if diff:
+                notes.append(f"truncated run after {n} h vs the full run: {diff}")
+            elif n < need:
+                notes.append(f"{n} hours where {need} are needed")
+        self.add("truncation", not notes, notes[0] if notes else
+                 "stops only where no path needs more, values equal to the full run")
+
+    def check_shutdown(self) -> None:
+        worker = self.main()
+        try:
+            msg = worker.ask({"op": "shutdown"}, SHUTDOWN_GRACE_S)
+            problem = "" if msg.get("op") == "bye" else f"answered op {msg.get('op')!r}"
+        except _WorkerTimeout:
+            problem = f"no bye within {SHUTDOWN_GRACE_S:g} s"
+        except (_WorkerDied, ProtocolError) as exc:
+            problem = f"no bye: {exc}"
+        code = None
+        if not problem:
+            try:
+                code = worker.proc.wait(timeout=SHUTDOWN_GRACE_S)
+            except Exception:  # noqa: BLE001 - subprocess.TimeoutExpired
+                problem = f"bye, but still running {SHUTDOWN_GRACE_S:g} s later"
+        if not problem and code != 0:
+            problem = f"bye, then exit code {code}"
+        worker.kill()
+        self.add("shutdown", not problem, problem or "bye, exit code 0")
+
+
+def run_checks(command: Sequence[str], env: dict[str, str] | None = None,
+               timeout_s: float = DEFAULT_TIMEOUT_S,
+               x0s: list[dict[str, float]] | None = None) -> list[Outcome]:
+    """Every check against ``command``; the report's rows in order."""
+    checker = Checker(list(command), env, float(timeout_s))
+    try:
+        worker = checker.check_hello()
+        if worker is None:
+            return checker.outcomes
+        x0s = x0s or shipped_x0()
+        runs = checker.run_battery(worker, x0s)
+        steps: list[tuple[str, Callable[[], None]]] = []
+        # the reference run: ok, 3+ hours, doses changing over time (a look-ahead shows)
+        ref = next((r for r in sorted(runs, key=lambda r: r.request["doses"] != [
+            list(d) for d in DOSES[1][:r.request["hours"]]])
+            if r.status == "ok" and r.request["hours"] >= 3), None)
+        if ref is None:
+            for name in ("deterministic", "prefix"):
+                checker.add(name, None, "no ok run of 3+ hours to compare")
+        else:
+            steps += [("deterministic", lambda: checker.check_determinism(ref)),
+                      ("prefix", lambda: checker.check_prefix(ref))]
+        steps += [("batch", lambda: checker.check_batch(runs)),
+                  ("save/restore", lambda: checker.check_save_restore(x0s[0])),
+                  ("truncation", lambda: checker.check_truncation(x0s[0])),
+                  ("shutdown", checker.check_shutdown)]
+        for _, step in steps:
+            step()
+    finally:
+        checker.close_all()
+    return checker.outcomes
+
+
+def report(outcomes: list[Outcome]) -> str:
+    """The pass / fail table, a fix under each failure, and a last line with the verdict."""
+    width = max(len(o.name) for o in outcomes)
+    lines = []
+    for o in outcomes:
+        mark = {True: "pass", False: "FAIL", None: "skip"}[o.ok]
+        lines.append(f"{o.name:<{width}}  {mark}  {o.detail}")
+        if o.fix:
+            lines.append(f"{'':<{width}}        fix: {o.fix}")
+    failed = [o.name for o in outcomes if o.ok is False]
+    lines.append(f"{len(failed)} check(s) failed: {', '.join(dict.fromkeys(failed))}"
+                 if failed else "all checks passed")
+    return "\n".join(lines)
+
+
+def command_of(spec: dict[str, Any], name: str = "twin") -> tuple[list[str], dict | None, float]:
+    """(command, env, timeout_s) of a ``kind: command`` twin spec, as a study starts it."""
+    from twinfalsify.runs.registry import make_twin
+
+    if spec.get("kind") != "command":
+        raise ContractError(f"twins.{name}: the check runs twins of kind command (this one is "
+                            f"kind {spec.get('kind')!r}); the builtin twins conform by "
+                            "construction")
+    twin = make_twin(name, spec)
+    timeout = float(spec["timeout_s"]) if "timeout_s" in spec else DEFAULT_TIMEOUT_S
+    env = None
+    if twin.env:
+        import os
+
+        env = {**os.environ, **twin.env}
+    return twin.command, env, timeout
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m twinfalsify.runs.check",
+        description="Check that a twin speaks the twin protocol as a study needs.")
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--spec", help="the twin's config entry as JSON, e.g. "
+                       "'{\"kind\": \"command\", \"command\": [\"python\", \"my_twin.py\"]}'")
+    which.add_argument("--config", help="a study config (with --twin)")
+    parser.add_argument("--twin", help="the twin's name in --config")
+    parser.add_argument("--x0", help="take the X_0 of the first 4 stays of this trajectory "
+                        "table instead of the shipped synthetic patients")
+    parser.add_argument("--timeout-s", type=float, help="per-run time limit (default: the "
+                        f"spec's timeout_s, else {DEFAULT_TIMEOUT_S:g})")
+    args = parser.parse_args(argv)
+    if args.spec is not None:
+        try:
+            spec = json.loads(args.spec)
+        except json.JSONDecodeError as exc:
+            raise ContractError(f"--spec: not JSON ({exc.msg})") from None
+        if not isinstance(spec, dict):
+            raise ContractError("--spec: must be a JSON object like {\"kind\": \"command\", "
+                                "\"command\": [...]}")
+        name = "twin"
+    else:
+        if not args.twin:
+            raise ContractError("--config needs --twin NAME")
+        from twinfalsify.io import load_yaml_strict
+
+        twins = (load_yaml_strict(args.config) or {}).get("twins") or {}
+        if args.twin not in twins:
+            raise ContractError(f"{args.config}: no twin {args.twin!r} under twins (found "
+                                f"{', '.join(twins) or 'none'})")
+        spec, name = twins[args.twin], args.twin
+    command, env, timeout = command_of(spec, name)
+    if args.timeout_s is not None:
+        timeout = args.timeout_s
+    x0s = x0_from_table(args.x0) if args.x0 else None
+    print(f"checking twin {shlex.join(command)} (timeout_s {timeout:g})", flush=True)
+    t0 = time.monotonic()
+    outcomes = run_checks(command, env, timeout, x0s)
+    print(report(outcomes))
+    print(f"({time.monotonic() - t0:.1f} s)")
+    return 1 if any(o.ok is False for o in outcomes) else 0
+
+
+if __name__ == "__main__":
+    from twinfalsify.io import cli_main
+
+    sys.exit(cli_main(lambda: main(), "twinfalsify.runs.check"))
