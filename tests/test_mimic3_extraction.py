@@ -39,8 +39,8 @@ def test_consort_counts_each_step(cohort):
     assert list(c["step"]) == list(STEPS)
     # 24 stays (README); under anchor=intime the anchor step excludes nothing, and S12/S13
     # (vitals 1 h / 6 h late) join S4 at vitals_complete: [INTIME, INTIME + 1 h) has none
-    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 14, 13, 12, 9, 9]
-    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 0, 1, 1, 3, 0]
+    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 14, 13, 12, 9, 9, 9]
+    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 0, 1, 1, 3, 0, 0]
     assert sorted(cohort.trajectories[schema.STAY_ID].unique()) == COHORT_INTIME
     assert (cohort.anchors["anchor_h"] == 0).all()
     assert (cohort.anchors["t0"] == cohort.anchors["intime"]).all()
@@ -50,8 +50,8 @@ def test_first_vitals_consort(cohort_fv):
     c = cohort_fv.consort
     assert list(c["step"]) == list(STEPS)
     # S13 has no complete vital set in the first 6 ICU hours (anchor step); S12 is kept
-    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 13, 12, 11, 10, 10]
-    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 1, 1, 1, 1, 0]
+    assert list(c["n_stays"]) == [24, 23, 20, 17, 16, 15, 14, 13, 12, 11, 10, 10, 10]
+    assert list(c["n_excluded"]) == [0, 1, 3, 3, 1, 1, 1, 1, 1, 1, 1, 0, 0]
     assert sorted(cohort_fv.trajectories[schema.STAY_ID].unique()) == sorted(
         [*COHORT_INTIME, S12])
     a = cohort_fv.anchors.set_index(schema.STAY_ID)
@@ -321,4 +321,5 @@ def test_audit_table_one_row_per_stay_every_reason(cohort):
     assert all(excl.get(step, 0) == c[step] for step in STEPS[1:])
     # organs behind the SOFA: S1 coagulation 2 + cardiovascular 4
     assert a.loc[S1, "sofa_organs"] == "coagulation=2;cardiovascular=4"
-    assert a.loc[S1, "n_imputed_cells"] == 0 and a.loc[200016, "n_imputed_cells"] == 2
+    assert a.loc[S1, "n_imputed_weight_hours"] == 0 and a.loc[S1, "n_imputed_lab_cells"] == 0
+    assert a.loc[200016, "n_imputed_weight_hours"] == 2 and a.loc[200016, "n_imputed_lab_cells"] == 0

@@ -15,10 +15,10 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 
 def test_data_tables_have_meaning_and_version():
-    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "1",
+    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "2",
                 "sample_and_hold.csv": "1", "vasopressors.csv": "1", "fluids.csv": "1",
                 "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "1",
-                "withdrawal.csv": "1"}
+                "withdrawal.csv": "1", "heights.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name
@@ -50,13 +50,53 @@ def test_delete_outliers_bounds_inclusive():
     assert kept["value"].tolist() == [250.0, 95.0]
 
 
+def _bp(rows):
+    """BP events from (icustay_id, minutes after T0, feature, value)."""
+    return pd.DataFrame([{"icustay_id": i, "time": T0 + pd.Timedelta(minutes=m),
+                          "feature": f, "value": float(v)} for i, m, f, v in rows])
+
+
+def _completed(ev):
+    out = hourly.complete_bp(ev).iloc[len(ev):]
+    return sorted((int(r.icustay_id), int((r.time - T0) / pd.Timedelta(minutes=1)),
+                   r.feature, round(r.value, 6)) for r in out.itertuples())
+
+
 def test_complete_bp_formulas():
-    b = pd.DataFrame({"SysBP": [120, 120, np.nan], "MeanBP": [np.nan, 90, 90],
-                      "DiaBP": [60, np.nan, 75]}, dtype=float)
-    c = hourly.complete_bp(b)
-    np.testing.assert_allclose(c["MeanBP"], [80, 90, 90])  # (120 + 2*60) / 3
-    np.testing.assert_allclose(c["DiaBP"], [60, 75, 75])  # (3*90 - 120) / 2
-    np.testing.assert_allclose(c["SysBP"], [120, 120, 120])  # 3*90 - 2*75
+    ev = _bp([(1, 0, "SysBP", 120), (1, 0, "DiaBP", 60),  # MAP = (120 + 2*60) / 3
+              (2, 0, "SysBP", 120), (2, 0, "MeanBP", 90),  # Dia = (3*90 - 120) / 2
+              (3, 0, "MeanBP", 90), (3, 0, "DiaBP", 75)])  # Sys = 3*90 - 2*75
+    assert _completed(ev) == [(1, 0, "MeanBP", 80.0), (2, 0, "DiaBP", 75.0),
+                              (3, 0, "SysBP", 120.0)]
+
+
+def test_complete_bp_only_within_a_charting_time():
+    # systolic at 0:10, mean at 0:40 of the same hour: two charting times, no completion
+    # (an hourly-mean completion combined them); both charted at 0:10 -> completed at 0:10
+    ev = _bp([(1, 10, "SysBP", 94), (1, 40, "MeanBP", 142),
+              (2, 10, "SysBP", 120), (2, 10, "MeanBP", 90), (2, 40, "SysBP", 150)])
+    assert _completed(ev) == [(2, 10, "DiaBP", 75.0)]
+
+
+def test_complete_bp_keeps_impossible_values_missing():
+    ev = _bp([(1, 0, "SysBP", 120), (1, 0, "MeanBP", 80),  # Dia (240 - 120) / 2 = 60
+              (2, 0, "SysBP", 200), (2, 0, "MeanBP", 60),  # Dia -20: below the limits
+              # MAP above systolic: Dia (3 x 100 - 94) / 2 = 103 > Sys, rejected
+              (3, 0, "SysBP", 94), (3, 0, "MeanBP", 100),
+              (4, 0, "MeanBP", 90), (4, 0, "DiaBP", 95)])  # Dia above MAP: no Sys
+    assert _completed(ev) == [(1, 0, "DiaBP", 60.0)]
+
+
+def test_completed_bp_is_held_forward():
+    # MetaVision without a charted diastolic (bp_items = ai_clinician): Sys and MAP charted
+    # together at 0:30, nothing in hour 1. The diastolic completed at 0:30 is held into
+    # hour 1 like the charted pair (completion before sample-and-hold, AI-Clinician's order)
+    intime = pd.Series([T0], index=pd.Index([1], name="icustay_id"))
+    ev = hourly.complete_bp(_bp([(1, 30, "SysBP", 120), (1, 30, "MeanBP", 90)]))
+    b = hourly.block_means(ev, intime, hourly.BP, 2)
+    held = hourly.sample_and_hold(b, ev, intime)
+    assert held["DiaBP"].tolist()[:2] == [75.0, 75.0]
+    assert held["SysBP"].tolist()[:2] == [120.0, 120.0]
 
 
 def test_block_means_and_sample_and_hold_boundary():
@@ -159,14 +199,6 @@ def test_sample_and_hold_last_hour_mean():
     assert np.isnan(last["HR"].iloc[3]) and np.isnan(mean["HR"].iloc[3])
     with pytest.raises(ContractError, match="how must be one of"):
         hourly.sample_and_hold(b, ev, intime, how="next_value")
-
-
-def test_complete_bp_keeps_impossible_values_missing():
-    b = pd.DataFrame({"SysBP": [120.0, 200.0], "MeanBP": [80.0, 60.0],
-                      "DiaBP": [np.nan, np.nan]})
-    out = hourly.complete_bp(b)
-    assert out["DiaBP"].iloc[0] == 60.0  # (3 x 80 - 120) / 2
-    assert np.isnan(out["DiaBP"].iloc[1])  # (180 - 200) / 2 < 0: deleted like an outlier
 
 
 def test_renal_sofa_from_urine_output():

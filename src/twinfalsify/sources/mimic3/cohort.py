@@ -154,8 +154,8 @@ def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame, rule: str = "nea
     return out.astype({"icustay_id": "int64"})
 
 
-def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest"
-                        ) -> pd.DataFrame:
+def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
+                        evidence: dict | None = None) -> pd.DataFrame:
     """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
     Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
@@ -171,7 +171,8 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest"
     stays come back with ``in_window`` False.
 
     Returns a frame indexed by icustay_id: onset, onset_source ('antibiotic' | 'culture'),
-    antibiotic_time, culture_time, in_window.
+    antibiotic_time, culture_time, in_window. ``evidence`` (a dict), when given, receives the
+    stays with any antibiotic (``"antibiotic"``) and any culture (``"culture"``) assigned.
     """
     ab = data_table("antibiotics.csv")
     inc = ab.loc[ab["kind"] == "name_include", "pattern"].str.lower().tolist()
@@ -203,6 +204,9 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest"
     abx = abx[abx["time"].notna()]
     a = _assign_to_stays(abx, stays, event_stay).drop_duplicates()
     c = _assign_to_stays(cult, stays, event_stay).drop_duplicates()
+    if evidence is not None:
+        evidence["antibiotic"] = pd.Index(a["icustay_id"].unique())
+        evidence["culture"] = pd.Index(c["icustay_id"].unique())
     rows = {}
     cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
     for sid, g in a.groupby("icustay_id"):
@@ -244,12 +248,65 @@ MEASURED_DIASTOLIC = (220051, 220180)  # MetaVision ABPd / NBPd: bp_items = "mea
 RASS_TO_GCS = {0: 15.0, -1: 14.0, -2: 12.0, -3: 11.0, -4: 6.0, -5: 3.0}
 
 
+INCH = 2.54  # cm
+
+
+def _heights(con, subjects) -> pd.DataFrame:
+    """Body heights (cm) charted for ``subjects`` in any of their ICU stays: subject_id,
+    time, height_cm (heights.csv items; a value in the other unit's adult range is taken in
+    that unit; outside outlier_limits.csv ``height_cm`` deleted)."""
+    items = data_table("heights.csv")[["itemid", "unit"]].astype({"itemid": "int64"})
+    con.register("height_items", items)
+    con.register("height_subj", pd.DataFrame({"subject_id": np.asarray(subjects, "int64")}))
+    h = con.execute(f"""
+        SELECT CAST(c.SUBJECT_ID AS BIGINT) AS subject_id, {_ts('c.CHARTTIME')} AS time,
+               TRY_CAST(c.VALUENUM AS DOUBLE) AS value, i.unit
+        FROM CHARTEVENTS c JOIN height_items i ON CAST(c.ITEMID AS BIGINT) = i.itemid
+        WHERE CAST(c.SUBJECT_ID AS BIGINT) IN (SELECT subject_id FROM height_subj)
+          AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0""").df()
+    h = h.dropna(subset=["time", "value"])
+    v, inch = h["value"].to_numpy(float), (h["unit"] == "in").to_numpy()
+    as_cm = np.where(inch, v * INCH, v)
+    as_cm = np.where(inch & (v >= 120) & (v <= 230), v, as_cm)  # cm in an inch item
+    as_cm = np.where(~inch & (v >= 47) & (v <= 91), v * INCH, as_cm)  # inches in a cm item
+    h = h.assign(height_cm=as_cm)
+    h = h[hourly._within_limits("height_cm", h["height_cm"]).to_numpy()]
+    return h[["subject_id", "time", "height_cm"]].sort_values("time", kind="stable")
+
+
+def implausible_weight(con, stays: pd.DataFrame, ev: pd.DataFrame) -> np.ndarray:
+    """True for each weight row of ``ev`` (icustay_id, time, feature, value in kg) whose BMI
+    with the patient's last height charted at or before it (``_heights``, any of the
+    patient's ICU stays, so never a later one) is outside outlier_limits.csv ``bmi``.
+    Weights without a height known by then pass (the kg outlier limits still apply): e.g.
+    234 'kg' (pounds in a kg item) at a height of 165 cm is BMI 86, deleted."""
+    out = np.zeros(len(ev), dtype=bool)
+    w = ev["feature"].to_numpy() == "weight"
+    if not w.any():
+        return out
+    q = pd.DataFrame({"row": np.flatnonzero(w), "time": ev["time"].to_numpy()[w],
+                      "value": ev["value"].to_numpy(float)[w],
+                      "subject_id": stays["subject_id"].reindex(
+                          ev["icustay_id"].to_numpy()[w]).to_numpy("int64")})
+    h = _heights(con, q["subject_id"].unique())
+    if h.empty:
+        return out
+    q = pd.merge_asof(q.sort_values("time", kind="stable"), h, on="time", by="subject_id",
+                      direction="backward")
+    bmi = q["value"] / (q["height_cm"] / 100) ** 2
+    bad = q["height_cm"].notna() & ~hourly._within_limits("bmi", bmi)
+    out[q.loc[bad, "row"].to_numpy()] = True
+    return out
+
+
 def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
-            opts: Mimic3Options | None = None) -> pd.DataFrame:
+            opts: Mimic3Options | None = None, dropped: list | None = None) -> pd.DataFrame:
     """Charted and lab values of ``features`` for ``stays`` between lo and hi (per stay),
     converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
-    only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). ``opts``: the item
-    switches (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
+    only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). Weights implausible
+    for the patient's height are deleted (``implausible_weight``; appended to ``dropped``
+    when given). ``opts``: the item switches (bp_items, gcs_intubated, sofa: which GCS
+    items make ``sofa_gcs``)."""
     opts = opts or Mimic3Options()
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
@@ -280,6 +337,11 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
           AND {_ts('l.CHARTTIME')} BETWEEN w.lab_lo AND w.lab_hi""").df()
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
+    if "weight" in features:
+        bad = implausible_weight(con, stays, ev)
+        if dropped is not None:
+            dropped.append(ev[bad])
+        ev = ev[~bad].reset_index(drop=True)
     gcs = ev["feature"].isin(["sofa_gcs", "sofa_gcs_component"])
     if gcs.any() and opts.gcs_intubated == "not_assessable":
         cond = " OR ".join(f"(CAST(c.ITEMID AS BIGINT) = {i} AND c.VALUE LIKE '{v}')"
@@ -459,9 +521,12 @@ def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
 def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
              opts: Mimic3Options | None = None) -> pd.DataFrame:
     """Max over the eighteen 4 h blocks of [onset - 48 h, onset + 24 h) of the block SOFA
-    (``block_sofa``, no carrying). Returns, per stay, ``max_sofa`` and ``sofa_organs``: the
-    organs scoring >= 1 point in the first block reaching the maximum (';'-joined)."""
-    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, opts=opts)
+    (``block_sofa``), each component carried forward from the last earlier block of the
+    window that has it (AI-Clinician scores SOFA on sample-and-held values; without carrying
+    a block scores only what was charted in those 4 h, and the maximum understates).
+    Returns, per stay, ``max_sofa`` and ``sofa_organs``: the organs scoring >= 1 point in the
+    first block reaching the maximum (';'-joined)."""
+    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, carry=True, opts=opts)
     first = blocks["sofa"].groupby(level=0).idxmax()  # first block with the maximum
     best = blocks.loc[first.to_numpy()]
     organs = best[list(SOFA_ORGANS)].apply(
@@ -471,7 +536,12 @@ def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
                         index=pd.Index(best.index.get_level_values(0), name="icustay_id"))
 
 
-def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd.Index:
+WITHDRAWAL_INPUTS = ("died_within_90d", "stay_blocks_4h", "max_block_vaso", "last_block_vaso",
+                     "max_block_sofa", "last_block_sofa")
+
+
+def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None,
+              inputs: dict | None = None) -> pd.Index:
     """Stays flagged as treatment withdrawal, AI-Clinician's 'exclude early deaths from
     possible withdrawals' (source and parameters: data/mimic3/withdrawal.csv) on 4 h blocks
     of the whole ICU stay from INTIME: all of
@@ -485,6 +555,9 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd
     AI-Clinician's record is [onset - 24 h, onset + 48 h] in 4 h blocks of sample-and-held,
     imputed values; here it is the ICU stay, and SOFA components are carried forward over
     blocks (``block_sofa(carry=True)``), the nearest equivalent without imputation.
+    ``inputs`` (a dict), when given, receives a frame of the rule's inputs per stay
+    (``WITHDRAWAL_INPUTS``; the block values only for the stays that died early with a short
+    stay, the others need no more).
     """
     par = data_table("withdrawal.csv").set_index("parameter")["value"].astype(float)
     width = par["block_hours"] * HOUR
@@ -494,6 +567,10 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd
                                <= pd.Timedelta(days=float(par["died_within_days"])))
     n_blk = np.ceil((s["outtime"] - s["intime"]) / width).clip(lower=1)
     cand = s.index[(died & (n_blk < max_blocks)).to_numpy()]
+    table = pd.DataFrame({"died_within_90d": died.to_numpy(bool),
+                          "stay_blocks_4h": n_blk.to_numpy("int64")}, index=s.index)
+    if inputs is not None:
+        inputs["frame"] = table.reindex(columns=list(WITHDRAWAL_INPUTS))
     if not len(cand):
         return pd.Index([], dtype="int64")
     blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], max_blocks - 1, carry=True,
@@ -506,6 +583,11 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None) -> pd
     lastrow = blocks.groupby(level=0).tail(1).droplevel(1).reindex(mx.index)
     flag = ((mx["vaso"] > par["max_vaso_gt"]) & (lastrow["vaso"] == par["last_vaso_eq"])
             & (lastrow["sofa"] >= par["last_sofa_fraction"] * mx["sofa"]))
+    if inputs is not None:
+        t = inputs["frame"]
+        for col, v in (("max_block_vaso", mx["vaso"]), ("last_block_vaso", lastrow["vaso"]),
+                       ("max_block_sofa", mx["sofa"]), ("last_block_sofa", lastrow["sofa"])):
+            t[col] = v.reindex(t.index).to_numpy(float)
     return pd.Index(mx.index[flag.to_numpy()], dtype="int64")
 
 
@@ -547,7 +629,7 @@ def realign(frame: pd.DataFrame, offset_h: pd.Series, t_max: int) -> pd.DataFram
 
 STEPS = ("all_icu_stays", "adult", "suspected_infection", "sofa_ge_2", "mortality_documented",
          "intake_documented", "not_withdrawn", "anchor", "stay_covers_window",
-         "weight_documented", "vitals_complete", "imputable")
+         "weight_documented", "vitals_complete", "stays_per_patient", "imputable")
 
 
 def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
@@ -603,7 +685,8 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     ids_all = allst.index
     crit = pd.DataFrame(index=ids_all)  # True = met, False = failed, NA = not evaluated
     crit["adult"] = (allst["age"] >= 18).to_numpy()
-    inf = suspected_infection(con, allst, opts.event_stay)
+    evidence: dict = {}
+    inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence)
     crit["suspected_infection"] = inf["in_window"].reindex(ids_all).fillna(False).astype(bool)
     has_onset = inf.index[inf["in_window"].to_numpy()]
     sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
@@ -615,7 +698,8 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
         UNION SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_CV""").df()
     documented = set(documented.iloc[:, 0])
     crit["intake_documented"] = ids_all.isin(list(documented))
-    crit["not_withdrawn"] = ~ids_all.isin(withdrawn(con, allst, opts))
+    wd_inputs: dict = {}
+    crit["not_withdrawn"] = ~ids_all.isin(withdrawn(con, allst, opts, inputs=wd_inputs))
 
     # hourly blocks k = 0..n_blk - 1 from INTIME for every stay: enough to find the anchor
     # and hold t_max hours after it (intime: the anchor is block 0)
@@ -624,9 +708,15 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     intime = allst["intime"]
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
-    ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts)
+    dropped: list = []
+    ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts,
+                 dropped=dropped)
+    n_implausible = pd.concat(dropped)["icustay_id"].value_counts() if dropped else None
+    # blood pressure completed per charting time, then hourly means and sample-and-hold of
+    # charted and completed values alike (AI-Clinician's order)
+    ev = hourly.complete_bp(ev)
     raw = hourly.block_means(ev, intime, feats, n_blk - 1)
-    held = hourly.sample_and_hold(hourly.complete_bp(raw), ev, intime, how=opts.hold)
+    held = hourly.sample_and_hold(raw, ev, intime, how=opts.hold)
     if anchor == "first_vitals":
         offset = first_complete_vitals(held, window)
         anchor_desc = (f"t = 0 at the first hour with every vital, within the first {window} "
@@ -658,6 +748,20 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
     vit = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
     crit["vitals_complete"] = vit.reindex(full).reindex(ids_all).astype("boolean")
+    # stays_per_patient = first: of a patient's stays meeting every criterion before this
+    # one, only the earliest (INTIME) stays; evaluated on those stays only
+    before = ids_all[crit[list(STEPS[1:STEPS.index("stays_per_patient")])]
+                     .fillna(False).all(axis=1).to_numpy(bool)]
+    if opts.stays_per_patient == "first":
+        cand = allst.loc[before].sort_values(["intime", "icustay_id"])
+        first = cand.drop_duplicates("subject_id")["icustay_id"]
+        crit["stays_per_patient"] = pd.Series(before.isin(first), index=before).reindex(
+            ids_all).astype("boolean")
+        spp_desc = "the patient's first stay (INTIME) meeting every criterion above"
+    else:
+        crit["stays_per_patient"] = pd.Series(True, index=before).reindex(ids_all).astype(
+            "boolean")
+        spp_desc = "every stay of each patient (stays_per_patient: all)"
 
     c = _Consort()
     desc = {
@@ -675,6 +779,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
         "weight_documented": w_desc,
         "vitals_complete": f"every vital present in each hour t = 0..{t_max} (after "
         "sample-and-hold; the paper's change)",
+        "stays_per_patient": spp_desc,
     }
     ids = ids_all
     c.add("all_icu_stays", desc["all_icu_stays"], ids)
@@ -688,19 +793,31 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     offset = offset.reindex(ids)
     after_hold_missing = held[["weight", *hourly.LABS]].isna()
     n_w = int(after_hold_missing["weight"].groupby(level=0).any().sum())
+    n_w_hours = int(after_hold_missing["weight"].sum())
     if len(ids):
         # weight / labs still missing after sample-and-hold: 1-NN over all non-demographic
-        # features, donors from other stays at the same or an earlier hour only (a donor
-        # from the stay itself would usually be its own future)
+        # features, donors from other patients' stays at the same or an earlier hour only (a
+        # donor from the stay itself would usually be its own future; one from another stay
+        # of the same patient, possibly months later, is the patient's future too)
         x = held[list(schema.FEATURES[2:])].to_numpy(float)
-        imp = hourly.knn_impute(x, groups=held.index.get_level_values("icustay_id").to_numpy(),
+        subj = stays["subject_id"].reindex(held.index.get_level_values("icustay_id"))
+        imp = hourly.knn_impute(x, groups=subj.to_numpy("int64"),
                                 times=held.index.get_level_values("t").to_numpy())
         held[list(schema.FEATURES[2:])] = imp
+        # one body weight per stay: every imputed weight hour takes the value imputed for
+        # the stay's first one (its donor saw only hours <= that hour; hourly donors
+        # would let a weight jump between unrelated patients' weights hour by hour)
+        wmiss = after_hold_missing["weight"]
+        if wmiss.any():
+            w = held["weight"].where(wmiss)
+            first_w = w.groupby(level=0).transform("first")
+            held.loc[wmiss, "weight"] = first_w[wmiss]
     done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
     crit["imputable"] = done.reindex(ids_all).astype("boolean")
     ids = ids[done.reindex(ids).to_numpy(bool)]
     c.add("imputable", "weight and every lab of every hour observed, held or imputed from "
-          f"another stay's same or earlier hour (weight imputed in {n_w} stays)", ids)
+          f"another patient's same or earlier hour (weight imputed in {n_w} stays, "
+          f"{n_w_hours} stay-hours)", ids)
     stays, held, raw, t0 = stays.loc[ids], held.loc[ids], raw.loc[ids], t0.loc[ids]
     offset = offset.loc[ids]
     after_hold_missing = after_hold_missing.loc[ids]
@@ -739,19 +856,31 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
                             "anchor_h": offset.to_numpy("int64")})
     imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
-    audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing)
+    audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing,
+                   evidence=evidence, withdrawal=wd_inputs.get("frame"),
+                   n_implausible=n_implausible)
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
                         missingness=missingness, anchors=anchors, imputed=imputed,
                         stays=audit, options=opts.as_dict())
 
 
+INFECTION_STATUS = ("onset", "onset_outside_window", "no_antibiotic_no_culture",
+                    "no_antibiotic", "no_culture", "no_pair_in_time")
+
+
 def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.DataFrame,
-           t0: pd.Series, in_cohort: pd.Index, imputed: pd.DataFrame) -> pd.DataFrame:
+           t0: pd.Series, in_cohort: pd.Index, imputed: pd.DataFrame,
+           evidence: dict | None = None, withdrawal: pd.DataFrame | None = None,
+           n_implausible: pd.Series | None = None) -> pd.DataFrame:
     """One row per ICU stay: identifiers, onset (time, source, the antibiotic and culture
-    times; also an onset outside the window, flagged), max SOFA and the organs scoring in
-    its block, t0, each criterion (True / False / NA = not evaluated: the SOFA needs an
-    onset, the hourly criteria an anchor, imputable the rest of the cohort), the first
-    failed step, every failed criterion and the number of imputed cells."""
+    times; also an onset outside the window, flagged), ``infection_status`` (why the
+    suspected-infection step passed or failed: ``INFECTION_STATUS``), max SOFA and the
+    organs scoring in its block, the treatment-withdrawal rule's inputs
+    (``WITHDRAWAL_INPUTS``), t0, each criterion (True / False / NA = not evaluated: the SOFA
+    needs an onset, the hourly criteria an anchor, imputable the rest of the cohort), the
+    first failed step, every failed criterion, the weights deleted as implausible
+    (``n_weight_implausible``: charts in the extraction window), and the imputed cells:
+    weight hours and lab cells apart."""
     a = pd.DataFrame({schema.STAY_ID: allst.index.to_numpy("int64"),
                       "subject_id": allst["subject_id"].to_numpy(),
                       "hadm_id": allst["hadm_id"].to_numpy(),
@@ -761,8 +890,21 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     for col in ("onset", "onset_source", "antibiotic_time", "culture_time"):
         a[col] = inf[col].reindex(allst.index).to_numpy()
     a["onset_in_window"] = inf["in_window"].reindex(allst.index).astype("boolean").to_numpy()
+    ev = evidence or {}
+    has_ab = allst.index.isin(ev.get("antibiotic", pd.Index([])))
+    has_cu = allst.index.isin(ev.get("culture", pd.Index([])))
+    has_onset = a["onset"].notna().to_numpy()
+    status = np.select(
+        [has_onset & a["onset_in_window"].fillna(False).to_numpy(bool), has_onset,
+         ~has_ab & ~has_cu, ~has_ab, ~has_cu],
+        list(INFECTION_STATUS[:5]), default=INFECTION_STATUS[5])
+    a["has_antibiotic"], a["has_culture"], a["infection_status"] = has_ab, has_cu, status
     a["max_sofa"] = sofa["max_sofa"].reindex(allst.index).to_numpy()
     a["sofa_organs"] = sofa["sofa_organs"].reindex(allst.index).to_numpy()
+    wd = (withdrawal if withdrawal is not None
+          else pd.DataFrame(columns=list(WITHDRAWAL_INPUTS)))
+    for col in WITHDRAWAL_INPUTS:
+        a[col] = wd[col].reindex(allst.index).to_numpy() if col in wd else np.nan
     a["t0"] = t0.reindex(allst.index).to_numpy()
     steps = list(STEPS[1:])
     for st in steps:
@@ -771,9 +913,14 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     a["excluded_at"] = [next((st for st in steps if f[st]), "") for _, f in failed.iterrows()]
     a["reasons"] = [";".join(st for st in steps if f[st]) for _, f in failed.iterrows()]
     a["in_cohort"] = allst.index.isin(in_cohort)
-    n_imp = imputed.groupby(level=0).sum().sum(axis=1)
-    a["n_imputed_cells"] = n_imp.reindex(allst.index).fillna(0).astype("int64").to_numpy()
-    a.loc[~a["in_cohort"], "n_imputed_cells"] = 0
+    a["n_weight_implausible"] = (n_implausible.reindex(allst.index).fillna(0).astype("int64")
+                                 .to_numpy() if n_implausible is not None else 0)
+    per_stay = imputed.groupby(level=0).sum()
+    n_w = per_stay["weight"] if "weight" in per_stay else pd.Series(dtype="int64")
+    n_lab = per_stay.drop(columns="weight", errors="ignore").sum(axis=1)
+    a["n_imputed_weight_hours"] = n_w.reindex(allst.index).fillna(0).astype("int64").to_numpy()
+    a["n_imputed_lab_cells"] = n_lab.reindex(allst.index).fillna(0).astype("int64").to_numpy()
+    a.loc[~a["in_cohort"], ["n_imputed_weight_hours", "n_imputed_lab_cells"]] = 0
     return a.reset_index(drop=True)
 
 

@@ -106,23 +106,42 @@ def _within_limits(feature: str, v: pd.Series) -> pd.Series:
     return ok
 
 
-def complete_bp(b: pd.DataFrame) -> pd.DataFrame:
-    """Fill one missing BP of (SysBP, MeanBP, DiaBP) from the other two (AI-Clinician):
-    MAP = (Sys + 2 Dia) / 3, Dia = (3 MAP - Sys) / 2, Sys = 3 MAP - 2 Dia.
-    (The standard MAP approximation; Komorowski's dataset code, section 'BP'.) A completed
-    value outside the feature's outlier limits (e.g. a negative diastolic from an
-    inconsistent pair) is left missing, as a charted one would be deleted."""
-    b = b.copy()
+BP = ("SysBP", "MeanBP", "DiaBP")
 
-    def fill(feat: str, need: pd.Series, v: pd.Series) -> None:
-        b.loc[need & _within_limits(feat, v), feat] = v
 
-    s = b["SysBP"]
-    fill("MeanBP", b["MeanBP"].isna() & s.notna() & b["DiaBP"].notna(), (s + 2 * b["DiaBP"]) / 3)
-    fill("DiaBP", b["DiaBP"].isna() & s.notna() & b["MeanBP"].notna(), (3 * b["MeanBP"] - s) / 2)
-    fill("SysBP", s.isna() & b["MeanBP"].notna() & b["DiaBP"].notna(),
-         3 * b["MeanBP"] - 2 * b["DiaBP"])
-    return b
+def complete_bp(ev: pd.DataFrame) -> pd.DataFrame:
+    """Complete blood pressure within each charting time (AI-Clinician, dataset code section
+    'ESTIMATE MISSING BLOOD PRESSURE', applied per charted row before sample-and-hold).
+
+    ``ev``: icustay_id, time, feature, value (converted, outliers deleted). At each
+    (icustay_id, time) where exactly one of SysBP, MeanBP, DiaBP is missing and the other
+    two are charted (values of one feature at that instant averaged), the missing one is
+    added as an event of that time: MAP = (Sys + 2 Dia) / 3, Dia = (3 MAP - Sys) / 2,
+    Sys = 3 MAP - 2 Dia (the standard MAP approximation). Readings of different times are
+    never combined. A completion is rejected (no event) when the two given values are not
+    ordered Sys > MAP > Dia (then neither is the result: the formulas keep the order of
+    their inputs) or when it falls outside the feature's outlier limits, as a charted value
+    would be deleted. Returns ``ev`` with the completed events appended (they are held
+    forward by ``sample_and_hold`` like charted ones)."""
+    bp = ev[ev["feature"].isin(BP)]
+    if bp.empty:
+        return ev
+    w = bp.pivot_table(index=["icustay_id", "time"], columns="feature", values="value",
+                       aggfunc="mean").reindex(columns=list(BP))
+    s, m, d = w["SysBP"], w["MeanBP"], w["DiaBP"]
+    new = []
+    for feat, need, v, ordered in (
+            ("MeanBP", m.isna() & s.notna() & d.notna(), (s + 2 * d) / 3, s > d),
+            ("DiaBP", d.isna() & s.notna() & m.notna(), (3 * m - s) / 2, s > m),
+            ("SysBP", s.isna() & m.notna() & d.notna(), 3 * m - 2 * d, m > d)):
+        ok = need & ordered & _within_limits(feat, v)
+        if ok.any():
+            new.append(pd.DataFrame({"icustay_id": w.index.get_level_values(0)[ok],
+                                     "time": w.index.get_level_values(1)[ok],
+                                     "feature": feat, "value": v[ok].to_numpy()}))
+    if not new:
+        return ev
+    return pd.concat([ev, *new], ignore_index=True)
 
 
 HOLDS = ("last_value", "last_hour_mean")
@@ -185,10 +204,11 @@ def knn_impute(x: np.ndarray, groups: np.ndarray | None = None,
                times: np.ndarray | None = None, chunk: int = 10_000,
                batch: int = 512) -> np.ndarray:
     """1-nearest-neighbour imputation (AI-Clinician: MATLAB knnimpute(., 1, 'seuclidean')
-    on chunks of 10,000 records), causal: donors are rows of *other* stays at the same or
+    on chunks of 10,000 records), causal: donors are rows of *other* groups at the same or
     an earlier hour.
 
-    Row i belongs to stay g = groups[i] at hour t = times[i]. Its eligible donors for a
+    Row i belongs to group g = groups[i] (the extraction passes the patient, SUBJECT_ID, so
+    no stay of the same patient is a donor) at hour t = times[i]. Its eligible donors for a
     missing column j are the rows k with groups[k] != g, times[k] <= t and column j
     observed; the donor minimises the mean over commonly observed columns of
     ((x_i - x_k) / sd_{g,t})^2 (standardised Euclidean distance; averaging over the shared

@@ -27,6 +27,9 @@ AIClinician_mimic3_dataset_160219.m, AIClinician_Data_extract_MIMIC3_140219.ipyn
   from other stays (1-NN, as the labs) or the stay is ``exclude``d.
 - ``event_stay``: an antibiotic / culture without ICUSTAY_ID in the window of several stays
   of its admission goes to the ``nearest`` stay or the ``last`` one (AI-Clinician's loop).
+- ``stays_per_patient``: ``all`` ICU stays of a patient that meet the criteria are kept
+  (AI-Clinician, the paper), or only the ``first`` of them (one stay per patient: stays of
+  one patient are not independent).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "gcs_intubated": ("not_assessable", "verbal_1"),
     "weight_missing": ("impute", "exclude"),
     "event_stay": ("nearest", "last"),
+    "stays_per_patient": ("all", "first"),
 }
 VARIANTS = ("project", "ai_clinician")
 
@@ -59,6 +63,7 @@ class Mimic3Options:
     gcs_intubated: str = "not_assessable"
     weight_missing: str = "impute"
     event_stay: str = "nearest"
+    stays_per_patient: str = "all"
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -78,7 +83,7 @@ PRESETS: dict[str, Mimic3Options] = {
     "ai_clinician": Mimic3Options(sofa="ai_clinician", bp_items="ai_clinician",
                                   hold="last_value", rewritten="ai_clinician",
                                   gcs_intubated="verbal_1", weight_missing="impute",
-                                  event_stay="last"),
+                                  event_stay="last", stays_per_patient="all"),
 }
 
 
