@@ -12,7 +12,9 @@ from twinfalsify.split import split_stays  # noqa: E402
 
 def main(sm):
     traj = read_parquet(sm.input[0], "trajectories")
-    d0, d = split_stays(traj, float(sm.params.d0_fraction), int(sm.params.seed))
+    d0, d = split_stays(
+        traj, float(sm.params.d0_fraction), int(sm.params.seed), sm.params.split_by
+    )
     log.info("D0: %d stays, D: %d stays", d0[STAY_ID].nunique(), d[STAY_ID].nunique())
     write_parquet(d0, sm.output.d0)
     write_parquet(d, sm.output.d)

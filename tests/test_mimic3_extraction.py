@@ -322,4 +322,5 @@ def test_audit_table_one_row_per_stay_every_reason(cohort):
     # organs behind the SOFA: S1 coagulation 2 + cardiovascular 4
     assert a.loc[S1, "sofa_organs"] == "coagulation=2;cardiovascular=4"
     assert a.loc[S1, "n_imputed_weight_hours"] == 0 and a.loc[S1, "n_imputed_lab_cells"] == 0
-    assert a.loc[200016, "n_imputed_weight_hours"] == 2 and a.loc[200016, "n_imputed_lab_cells"] == 0
+    assert a.loc[200016, "n_imputed_weight_hours"] == 2
+    assert a.loc[200016, "n_imputed_lab_cells"] == 0

@@ -79,6 +79,10 @@ OUTCOMES: tuple[str, ...] = (
 )
 
 TRAJECTORY_COLUMNS: tuple[str, ...] = (STAY_ID, TIME, *FEATURES, *DOSES)
+# Optional trajectory column: the patient a stay belongs to (MIMIC-III SUBJECT_ID), one per
+# stay. Stays of one patient are kept on one side of the D0 / D split and spread over the
+# X_0 draws (split.py, runs/plan.py); without it every stay is its own patient.
+SUBJECT_ID = "subject_id"
 
 # "implausible": the twin answered, but a value breaks the trajectory contract's range
 # (FEATURE_TABLE lo/hi); set by the runner, never trusted from a twin. Counts as failed.
@@ -132,13 +136,23 @@ def validate_trajectories(
     require_columns(df, TRAJECTORY_COLUMNS, source)
     if df.empty:
         raise ContractError(f"{where}no trajectories (empty table)")
-    out = df.loc[:, list(TRAJECTORY_COLUMNS)].copy()
+    keep = [*TRAJECTORY_COLUMNS, *([SUBJECT_ID] if SUBJECT_ID in df.columns else [])]
+    out = df.loc[:, keep].copy()
     for col in (*FEATURES, *DOSES):
         if not pd.api.types.is_numeric_dtype(out[col]):
             raise ContractError(f"{where}column {col} is not numeric (dtype {out[col].dtype})")
         out[col] = out[col].astype("float64")
     out[STAY_ID] = out[STAY_ID].astype("int64")
     out[TIME] = out[TIME].astype("int64")
+    if SUBJECT_ID in out:
+        subj = pd.to_numeric(out[SUBJECT_ID], errors="coerce")
+        if subj.isna().any() or (subj != np.round(subj)).any():
+            raise ContractError(f"{where}column {SUBJECT_ID} must be an integer in every row")
+        out[SUBJECT_ID] = subj.astype("int64")
+        per_stay = out.groupby(STAY_ID)[SUBJECT_ID].nunique()
+        if (per_stay > 1).any():
+            raise ContractError(f"{where}column {SUBJECT_ID}: stay_id {per_stay.idxmax()} has "
+                                "more than one subject")
     dup = out.duplicated([STAY_ID, TIME])
     if dup.any():
         # read the two int columns separately: a row of the mixed frame would be float

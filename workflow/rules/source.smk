@@ -48,6 +48,7 @@ rule split:
         runtime=10,
     params:
         d0_fraction=config["split"]["d0_fraction"],
+        split_by=config["split"].get("by", "subject"),
         seed=config["seed"],
         code=code("split"),
     script:

@@ -81,7 +81,12 @@ def plan_twin_runs(
     runs_per_sequence: int | None,
     n_shards: int,
     seed: int,
+    subjects: dict[int, int] | None = None,
 ) -> TwinPlan:
+    """X_0: the first m stays of a seeded permutation of D's sorted stay ids, reordered
+    so that each patient's first stay (in permutation order) comes before any patient's
+    second one (``subjects``: stay id -> patient; without it, or with one stay per patient,
+    the permutation as it is). So m draws take one stay per patient while they can."""
     stays = np.sort(np.asarray(d_stay_ids, dtype=np.int64))
     m = len(stays) if not runs_per_sequence else min(int(runs_per_sequence), len(stays))
     if runs_per_sequence and int(runs_per_sequence) > len(stays):
@@ -90,7 +95,11 @@ def plan_twin_runs(
             "without replacement): using %d runs per sequence",
             int(runs_per_sequence), len(stays), len(stays),
         )
-    x0 = np.random.default_rng(seed).permutation(stays)[:m]
+    perm = np.random.default_rng(seed).permutation(stays)
+    if subjects:
+        subj = pd.Series([subjects.get(int(x), -1 - int(x)) for x in perm])
+        perm = perm[np.argsort(subj.groupby(subj).cumcount().to_numpy(), kind="stable")]
+    x0 = perm[:m]
     seqs = {tuple(int(a) for a in s) for s in hyps["actions"].tolist()}
     nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
     leaves = sorted(s for s in nodes if not any(o[: len(s)] == s and o != s for o in nodes))

@@ -56,7 +56,7 @@ AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets the
 
 @dataclass
 class Mimic3Cohort:
-    trajectories: pd.DataFrame  # schema.TRAJECTORY_COLUMNS
+    trajectories: pd.DataFrame  # schema.TRAJECTORY_COLUMNS + schema.SUBJECT_ID
     consort: pd.DataFrame  # step, description, n_stays, n_excluded
     missingness: pd.DataFrame  # feature, t, n_missing_raw, share_missing_raw, n_imputed
     anchors: pd.DataFrame  # stay_id, intime, t0 (time of t = 0), anchor_h (t0 - INTIME, h)
@@ -522,11 +522,14 @@ def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
              opts: Mimic3Options | None = None) -> pd.DataFrame:
     """Max over the eighteen 4 h blocks of [onset - 48 h, onset + 24 h) of the block SOFA
     (``block_sofa``), each component carried forward from the last earlier block of the
-    window that has it (AI-Clinician scores SOFA on sample-and-held values; without carrying
-    a block scores only what was charted in those 4 h, and the maximum understates).
+    window that has it (AI-Clinician scores SOFA on sample-and-held values; without carrying,
+    ``opts.sofa_carry = "none"``, a block scores only what was charted in those 4 h, and the
+    maximum understates).
     Returns, per stay, ``max_sofa`` and ``sofa_organs``: the organs scoring >= 1 point in the
     first block reaching the maximum (';'-joined)."""
-    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, carry=True, opts=opts)
+    opts = opts or Mimic3Options()
+    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, carry=opts.sofa_carry == "carry",
+                        opts=opts)
     first = blocks["sofa"].groupby(level=0).idxmax()  # first block with the maximum
     best = blocks.loc[first.to_numpy()]
     organs = best[list(SOFA_ORGANS)].apply(
@@ -753,8 +756,8 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     before = ids_all[crit[list(STEPS[1:STEPS.index("stays_per_patient")])]
                      .fillna(False).all(axis=1).to_numpy(bool)]
     if opts.stays_per_patient == "first":
-        cand = allst.loc[before].sort_values(["intime", "icustay_id"])
-        first = cand.drop_duplicates("subject_id")["icustay_id"]
+        cand = allst.loc[before].sort_values("intime", kind="stable")  # ties: lower id
+        first = cand.drop_duplicates("subject_id").index
         crit["stays_per_patient"] = pd.Series(before.isin(first), index=before).reindex(
             ids_all).astype("boolean")
         spp_desc = "the patient's first stay (INTIME) meeting every criterion above"
@@ -848,7 +851,9 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     traj["iv_fluid"] = fl.reindex(key).to_numpy() if len(ids) else []
     traj["vasopressor"] = va.reindex(key).to_numpy() if len(ids) else []
     traj = traj.rename(columns={"icustay_id": schema.STAY_ID})
-    traj = traj[list(schema.TRAJECTORY_COLUMNS)]
+    # the patient of each stay: the split keeps a patient's stays on one side
+    traj[schema.SUBJECT_ID] = stays["subject_id"].reindex(traj[schema.STAY_ID]).to_numpy()
+    traj = traj[[*schema.TRAJECTORY_COLUMNS, schema.SUBJECT_ID]]
     if len(traj):
         traj = schema.validate_trajectories(traj, source=f"mimic3 extraction of {folder}",
                                             t_max=t_max)

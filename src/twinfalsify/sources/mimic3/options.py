@@ -10,6 +10,10 @@ AIClinician_mimic3_dataset_160219.m, AIClinician_Data_extract_MIMIC3_140219.ipyn
   only; ``ai_clinician`` = CNS from 198 and, where no GCS is charted, a GCS estimated from
   the MetaVision RASS (228096; Wesley et al., JAMA 2003), renal from creatinine and the
   urine output of the 4 h block (OUTPUTEVENTS, < 84 mL: 3 points, < 34 mL: 4).
+- ``sofa_carry``: the SOFA of a 4 h block around the onset ``carry``s each component
+  from the last earlier block that has it (AI-Clinician scores sample-and-held values) or
+  uses only values charted in the block (``none``: understates the maximum; kept to
+  reproduce cohorts extracted that way).
 - ``bp_items``: ``measured`` = MetaVision diastolic pressures 220051 (arterial) and 220180
   (non-invasive) are read; ``ai_clinician`` = they are not, so a MetaVision diastolic is
   only ever the completion formula (3 MAP - Sys) / 2.
@@ -41,6 +45,7 @@ from twinfalsify.schema import ContractError
 
 CHOICES: dict[str, tuple[str, ...]] = {
     "sofa": ("project", "ai_clinician"),
+    "sofa_carry": ("carry", "none"),
     "bp_items": ("measured", "ai_clinician"),
     "hold": ("last_value", "last_hour_mean"),
     "rewritten": ("exclude", "ai_clinician"),
@@ -57,6 +62,7 @@ class Mimic3Options:
     """One value per switch of ``CHOICES``; the defaults are the project's choices."""
 
     sofa: str = "project"
+    sofa_carry: str = "carry"
     bp_items: str = "measured"
     hold: str = "last_value"
     rewritten: str = "exclude"
@@ -80,7 +86,8 @@ PRESETS: dict[str, Mimic3Options] = {
     "project": Mimic3Options(),
     # AI-Clinician's choice for every switch; hold: AI-Clinician's row-wise sample-and-hold
     # carries the last charted value, as the project's default does
-    "ai_clinician": Mimic3Options(sofa="ai_clinician", bp_items="ai_clinician",
+    "ai_clinician": Mimic3Options(sofa="ai_clinician", sofa_carry="carry",
+                                  bp_items="ai_clinician",
                                   hold="last_value", rewritten="ai_clinician",
                                   gcs_intubated="verbal_1", weight_missing="impute",
                                   event_stay="last", stays_per_patient="all"),
