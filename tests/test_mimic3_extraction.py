@@ -133,7 +133,10 @@ def test_onset_rules():
 
 def test_trajectories_pass_contract(cohort):
     t = schema.validate_trajectories(cohort.trajectories)
-    assert list(t.columns) == list(schema.TRAJECTORY_COLUMNS)
+    assert list(t.columns) == [*schema.TRAJECTORY_COLUMNS, schema.SUBJECT_ID]
+    # the patient of each stay (S21 and S22 are one admission of subject 21)
+    subj = t.groupby(schema.STAY_ID)[schema.SUBJECT_ID].first()
+    assert subj[S1] == 1 and subj[200022] == 21
     assert all(v == [0, 1, 2, 3, 4] for v in t.groupby(schema.STAY_ID)["t"].apply(list))
 
 
