@@ -67,3 +67,13 @@ def test_tutorial_commands_run_as_written(tmp_path):
     for twin in ("mine", "fitted"):
         assert (r / "twins" / twin / "tables" / "rejections.csv").is_file()
     assert not (r / "figures" / "confounding.png").exists()  # the synthetic world only
+    # the deliberately wrong twin (heart rate +15 /min per hour) passes the conformance check
+    # but is rejected, and only on heart rate
+    import pandas as pd
+
+    wrong = pd.read_parquet(work / "results" / "table-wrong" / "twins" / "mine" /
+                            "results.parquet")
+    rejected = wrong[wrong["rejected"]]
+    assert len(rejected) > 0 and set(rejected["outcome"]) == {"HR"}
+    assert "all checks passed" in outputs[[i for i, c in enumerate(commands(PAGE.read_text()))
+                                           if "--config wrong.yaml" in c][0]]

@@ -148,3 +148,10 @@ def test_command_line_exit_codes_and_table(tmp_path):
                                     "under twins (found mine)")
     builtin = cli("--spec", '{"kind": "oracle"}')
     assert builtin.returncode == 2 and "the check runs twins of kind command" in builtin.stderr
+
+
+def test_the_template_twin_of_the_tutorial_passes_every_check():
+    outcomes = run_checks([sys.executable, str(ROOT / "docs" / "examples" / "template_twin.py")],
+                          ENV, timeout_s=30.0, x0s=X0)
+    assert not [o for o in outcomes if o.ok is False], report(outcomes)
+    assert {o.name for o in outcomes if o.ok is None} == {"batch", "save/restore", "truncation"}
