@@ -41,6 +41,7 @@ def test_exported_table_reads_back_as_the_synthetic_trajectories(tmp_path, suffi
     path = tmp_path / f"t{suffix}"
     write_table(to_table(traj), path)
     back = read_table(path)
+    assert (back.pop("subject_id") == back["stay_id"]).all()  # kept: the split uses it
     pd.testing.assert_frame_equal(back, traj)  # every value bit for bit, dtypes, order
     assert (back.to_numpy() == traj.to_numpy()).all()
 
@@ -51,7 +52,7 @@ def test_a_folder_of_files_in_any_row_order_is_one_table(tmp_path):
     write_table(table.iloc[:100], tmp_path / "part-a.csv")
     write_table(table.iloc[100:], tmp_path / "part-b.parquet")
     (tmp_path / "README.txt").write_text("not a table: ignored")
-    pd.testing.assert_frame_equal(read_table(tmp_path), traj)
+    pd.testing.assert_frame_equal(read_table(tmp_path).drop(columns="subject_id"), traj)
 
 
 def test_extra_columns_are_ignored_and_the_last_hours_dose_may_be_empty(tmp_path, small):
@@ -177,9 +178,10 @@ def test_study_on_the_exported_table_equals_the_synthetic_study_byte_for_byte(
 ):
     """config/test.yaml's study with the twins a table source can use (fitted, in-process
     and served over the protocol), once on the synthetic world and once on its trajectories
-    exported as a CSV table: every output file is equal byte for byte, except what only the
-    synthetic world has (its confounding figure, which needs the true interventional law)
-    and the twin context, which records the source."""
+    exported as a CSV table: every result, table, figure and the summary are equal byte for
+    byte. Apart: what only the synthetic world has (its confounding figure, which needs the
+    true interventional law), the twin context, which records the source, and the trajectory
+    tables, which carry the table's subject_id column and are otherwise equal."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")  # PDFs carry no creation time
     base = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     base["twins"] = {"fitted": {"kind": "fitted"},
@@ -201,7 +203,15 @@ def test_study_on_the_exported_table_equals_the_synthetic_study_byte_for_byte(
     assert only_synthetic == {"figures/confounding.png", "figures/confounding.pdf"}
     assert set(tab) == set(syn) - only_synthetic
     differ = sorted(k for k in tab if tab[k] != syn[k])
-    assert differ == ["twin_context.json"], differ
+    # the trajectory tables differ only by the table's subject_id column (one patient per
+    # stay, which is what the synthetic source's trajectories mean without it)
+    trajectory_tables = ["d.parquet", "d0.parquet", "trajectories.parquet"]
+    assert differ == [*trajectory_tables, "twin_context.json"], differ
+    for name in trajectory_tables:
+        a = pd.read_parquet(tmp_path / "table" / "results" / base["study"] / name)
+        b = pd.read_parquet(tmp_path / "synthetic" / "results" / base["study"] / name)
+        assert (a.pop("subject_id") == a["stay_id"]).all()
+        pd.testing.assert_frame_equal(a, b)
     assert len(tab) > 40 and "twins/served/results.parquet" in tab
     assert os.environ["SOURCE_DATE_EPOCH"] == "0"
 

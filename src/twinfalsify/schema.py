@@ -16,7 +16,6 @@ import pandas as pd
 T_MAX = 4  # hourly steps after t = 0 (docs/explanation/method.md: T = 4)
 
 STAY_ID = "stay_id"
-SUBJECT_ID = "subject_id"  # the patient a stay belongs to (table source)
 TIME = "t"
 IV_FLUID = "iv_fluid"  # mL/h during hour t -> t+1
 VASOPRESSOR = "vasopressor"  # norepinephrine-equivalent ug/kg/min during hour t -> t+1
