@@ -176,3 +176,13 @@ def mimic3_data():
     from twinfalsify.sources.mimic3_rule import data_params
 
     return data_params(config["source"].get("mimic3"))
+
+
+def table_source_files():
+    """The files of a table source (kind table, else none): inputs of the rule, so an
+    edited, added or removed file reruns it (twinfalsify.sources.table)."""
+    if config["source"]["kind"] != "table":
+        return []
+    from twinfalsify.sources.table import table_files
+
+    return [str(f) for f in table_files(config["source"]["table"]["path"]).files]
