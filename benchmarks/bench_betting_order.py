@@ -1,16 +1,18 @@
 """Betting p-values and the sample order: decisions across seeds, one order vs K orders.
 
     PYTHONPATH=src python benchmarks/bench_betting_order.py [--config config/config.yaml]
-        [--seeds 5] [--bets mixture plugin:1 plugin:16]
+        [--seeds 5] [--bets plugin mixture plugin:16 plugin:1:seed plugin:16:seed]
 
 Builds the study in-process as ``bench_adaptive.build`` does, simulates every twin run of
 the plan (builtin twins), then runs the betting test (``testing.failed_runs`` of the config,
-Holm per kind) with each bets variant (``mixture``: the order-free grid mixture, the default;
-``plugin:K``: plug-in bets averaged over K seeded orders) for seeds 0..S-1 of the test (the
-study itself, hence the data, is fixed). Prints per twin and variant: Holm rejections per
-seed (min-max), decisions that flip across the seeds (a (hypothesis, side) rejected under
-some seeds but not others), the seed-to-seed p ratio max/min (median and 90th percentile
-over hypotheses with p < 1 under every seed) and the wall time of one test run.
+Holm per kind) with each bets variant (``plugin``: plug-in bets in the data order, the
+default; ``mixture``: the order-free grid mixture; ``plugin:K``: terminal capitals averaged
+over K data orders; a ``:seed`` suffix: seeded orders instead) for seeds 0..S-1 of the test
+(the study itself, hence the data, is fixed). Prints per twin and variant: Holm rejections
+per seed (min-max), causal / Manski under seed 0, decisions that flip across the seeds (a
+(hypothesis, side) rejected under some seeds but not others), the seed-to-seed p ratio
+max/min (median and 90th percentile over hypotheses with p < 1 under every seed) and the
+wall time of one test run.
 """
 
 from __future__ import annotations
@@ -38,16 +40,17 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--bets", nargs="+", default=["mixture", "plugin:1", "plugin:16"])
+    ap.add_argument("--bets", nargs="+",
+                    default=["plugin", "mixture", "plugin:16", "plugin:1:seed", "plugin:16:seed"])
     ap.add_argument("--twins", nargs="+", default=None)
     args = ap.parse_args()
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
     testing = cfg["testing"]
     st = build(cfg, seed)
-    print("| twin | bets | rejections per seed | flipped decisions | p ratio median | "
-          "p ratio 90th | s per run |")
-    print("|---|---|---|---|---|---|---|")
+    print("| twin | bets | rejections per seed | causal / Manski | flipped decisions | "
+          "p ratio median | p ratio 90th | s per run |")
+    print("|---|---|---|---|---|---|---|---|")
     for name in args.twins or list(cfg["twins"]):
         twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
         runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
@@ -56,9 +59,10 @@ def main() -> None:
         tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
         samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
         for k in args.bets:
-            kind, _, orders = k.partition(":")
-            opts = {"bets": kind, **({"orders": int(orders)} if orders else {})}
-            rej, ps, secs = [], [], []
+            kind, orders, order = (k.split(":") + ["", ""])[:3]
+            opts = {"bets": kind, **({"orders": int(orders)} if orders else {}),
+                    **({"order": order} if order else {})}
+            rej, ps, secs, by_kind = [], [], [], ""
             for s in range(args.seeds):
                 t0 = time.monotonic()
                 res = run_tests(st.hyps, samples, nf,
@@ -68,6 +72,9 @@ def main() -> None:
                                 failed_runs=testing.get("failed_runs", "conservative"))
                 secs.append(time.monotonic() - t0)
                 rej.append(res["rejected"].to_numpy())
+                if s == 0:
+                    cnt = res.groupby("kind")["rejected"].sum()
+                    by_kind = f"{cnt.get('causal', 0)} / {cnt.get('manski', 0)}"
                 ps.append(res["p_value"].to_numpy())
             rej, ps = np.array(rej), np.array(ps)
             flips = int((rej.any(axis=0) & ~rej.all(axis=0)).sum())
@@ -76,7 +83,8 @@ def main() -> None:
             med, q90 = ((f"{np.median(ratio):.3f}", f"{np.quantile(ratio, 0.9):.3f}")
                         if ok.any() else ("-", "-"))  # no p < 1 under every seed
             counts = rej.sum(axis=1)
-            print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {flips} of {rej.shape[1]} | "
+            print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {by_kind} | "
+                  f"{flips} of {rej.shape[1]} | "
                   f"{med} | {q90} | {np.mean(secs):.1f} |", flush=True)
 
 

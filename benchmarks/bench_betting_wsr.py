@@ -1,184 +1,268 @@
-"""Betting intervals: the project's against Waudby-Smith & Ramdas's hedged capital process.
+"""Betting intervals, every variant, against hedged WSR and Hoeffding: widths and coverage.
 
-    PYTHONPATH=src python benchmarks/bench_betting_wsr.py [--reps 200] [--coverage-reps 2000]
+    PYTHONPATH=src python benchmarks/bench_betting_wsr.py [--reps 1000] [--coverage-reps 10000]
 
-Reference. ``confseq`` (the authors' package) does not build here (its C++ part needs
-Boost headers); when it imports, its ``betting.betting_mart`` is used as a cross-check of
-the reference below, otherwise that check is skipped. ``hedged_ci_reference`` implements
-the published process directly (WSR 2024, JRSS-B 86(1):1-27, Sec. 4, Thm 3, with the
-predictable plug-in bets of Sec. 5.1 tuned for a fixed n, as confseq's ``betting_ci`` does):
+One run prints, for Bernoulli(1/2), Bernoulli(0.1), Beta(2,2) and Uniform at n = 20, 50, 200,
+1000 and alpha = 0.05, 1e-4 (two-sided (1 - alpha) intervals for the mean, alpha/2 per end,
+bets tuned at alpha/2):
 
-    K^pm_t(m) = max(theta K+_t(m), (1 - theta) K-_t(m)),  theta = 1/2,
-    K+_t(m) = prod_{i<=t} (1 + min(lambda_i, c/m) (x_i - m)),
-    K-_t(m) = prod_{i<=t} (1 - min(lambda_i, c/(1-m)) (x_i - m)),
-    lambda_i = sqrt(2 log(1/(alpha theta)) / (n sigma2_{i-1})),  (sigma2 as in the paper,
-               prior mean 1/2, prior variance 1/4, one fake observation),
+1. mean width of every variant / mean width of the hedged WSR reference (same samples);
+2. the same / mean width of Hoeffding's interval, and the share of replicates in which the
+   default (``plugin``) is wider than Hoeffding;
+3. coverage: misses (true mean outside) of every variant over the same replicates, and of the
+   default over ``coverage-reps`` further replicates, with a Clopper-Pearson 95 % upper bound.
 
-and the (1 - alpha) interval {m : K^pm_t(m) < 1/alpha for every t <= n} (the running
-intersection). It is a plain per-sample loop over t, per m, sharing no code with the
-library; each end is found by bisection on m (K+ is non-increasing, K- non-decreasing in m,
-so each end is a monotone threshold), 50 halvings (resolution 1e-15).
+Reference (``wsr``). Hedged capital of Waudby-Smith & Ramdas (2024, JRSS-B 86(1):1-27, Sec. 4,
+Thm 3; theta = 1/2) with the fixed-n predictable plug-in bets of their Sec. 5.1 (prior mean
+1/2, prior variance 1/4, one fake observation), truncated only at c/m and c/(1-m), c = the
+project's 0.9, running intersection over t. Written here as a plain vectorised bisection over
+the replicates; it shares no code with the library. It is fed each sample in the order the
+project's ``plugin`` uses (any fixed order is as valid; the same one makes the ratio measure
+the algorithms, not two orders' luck). ``hoeffding``: mean +- sqrt(log(2/alpha) / (2n)),
+clipped to [0, 1].
 
-Project. ``betting.betting_bounds`` (lower_twin, upper_twin; bets tuned at alpha/2, the
-same level), and the order-free variant used by ``betting_test`` by default (terminal
-capital averaged over K seeded orders, ``orders``): its interval is computed by bisection
-on the same averaged capital.
+Variants (the library's ``betting`` options, and order-free constructions built from the
+library's capital ``log_capital``/``_bound``):
 
-The reference is fed each sample in the project's seeded order (any fixed order is as valid;
-using the same one makes the ratio measure the algorithms, not two orders' luck).
-Printed per (distribution, n, alpha): mean width of the project's interval / mean width of
-the reference's on the same samples (target <= 1.00), the same for the order-free variant,
-and the project's one-sided miss rates over ``coverage-reps`` replicates (nominal alpha/2
-each side; Monte-Carlo 2-SE given).
+- ``plugin`` (default): WSR plug-in bets in the data order (no seed), running maximum.
+- ``plugin:16``: terminal capital averaged over 16 data orders.
+- ``mixture``: the grid mixture of 6 constant bets (lambda_min 1.7^j), terminal capital.
+- ``const-oracle``: one constant bet sqrt(2 log(2/alpha) / (n sigma^2)) at the TRUE variance:
+  not a method (sigma^2 is unknown), the ceiling of every order-free constant bet.
+- ``const-D0``: the same bet at a variance estimated on an independent sample of n0 =
+  max(1, round(n / 19)) values (the default study's D0 : D = 5 : 95),
+  sigma2 = (1/4 + sum (x - mean)^2) / (n0 + 1) (WSR's shrunk estimator): valid (the bet is
+  independent of the sample tested), order-free.
+- ``const-pilot``: the twin side's honest pilot: the first ceil(sqrt(n)) values estimate
+  sigma2 as above and are left out; the interval uses the other n - ceil(sqrt(n)).
+- ``mix-D0``: uniform mixture of the three constant bets lambda_D0 * {1/1.5, 1, 1.5}.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import time
 
 import numpy as np
+from scipy import stats
 
 from twinfalsify.inference.betting import (
     C_TRUNC,
+    OrderedSide,
     _bound,
     betting_bounds,
     ordered_sides,
 )
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
-DISTRIBUTIONS = {
-    "Beta(2,5)": (lambda r, k: r.beta(2, 5, k), 2 / 7),
-    "30%-at-0 + Beta(2,2)": (lambda r, k: np.where(r.random(k) < 0.3, 0.0, r.beta(2, 2, k)),
-                             0.7 * 0.5),
-    "Bernoulli(0.1)": (lambda r, k: (r.random(k) < 0.1).astype(float), 0.1),
-    "Beta(2,2)": (lambda r, k: r.beta(2, 2, k), 0.5),
-    "Uniform": (lambda r, k: r.random(k), 0.5),
+DISTRIBUTIONS = {  # name: (draw(rng, shape), mean, variance)
+    "Bernoulli(1/2)": (lambda r, s: (r.random(s) < 0.5).astype(float), 0.5, 0.25),
+    "Bernoulli(0.1)": (lambda r, s: (r.random(s) < 0.1).astype(float), 0.1, 0.09),
+    "Beta(2,2)": (lambda r, s: r.beta(2, 2, s), 0.5, 0.05),
+    "Uniform": (lambda r, s: r.random(s), 0.5, 1 / 12),
 }
+VARIANTS = ("plugin", "plugin:16", "mixture", "const-oracle", "const-D0", "const-pilot",
+            "mix-D0")
 
 
-def _plugin_bets_ref(x: np.ndarray, alpha_side: float) -> np.ndarray:
-    """WSR's fixed-n predictable plug-in bets, written out as a loop over t."""
-    n = len(x)
-    lam = np.empty(n)
-    s, ss, sig2_prev = 0.0, 0.0, 0.25
-    for t in range(1, n + 1):
-        lam[t - 1] = np.sqrt(2 * np.log(1 / alpha_side) / (n * sig2_prev))
-        s += x[t - 1]
-        mu = min((0.5 + s) / (t + 1), 1.0)
-        ss += (x[t - 1] - mu) ** 2
-        sig2_prev = (0.25 + ss) / (t + 1)
-    return lam
+def wsr_reference(x: np.ndarray, alpha: float, c: float = C_TRUNC, n_iter: int = 50
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of the hedged WSR (1 - alpha) interval for every row of x (R, n)."""
+    r, n = x.shape
+    t = np.arange(1, n + 1)
+    mu = (0.5 + np.cumsum(x, axis=1)) / (t + 1)
+    sig2 = (0.25 + np.cumsum((x - mu) ** 2, axis=1)) / (t + 1)
+    prev = np.concatenate([np.full((r, 1), 0.25), sig2[:, :-1]], axis=1)
+    lam = np.sqrt(2 * np.log(2 / alpha) / (n * prev))  # log(1/(alpha theta)), theta = 1/2
+    level = np.log(2 / alpha)  # theta K >= 1/alpha
 
+    def hit(m: np.ndarray, sign: int) -> np.ndarray:
+        with np.errstate(divide="ignore"):
+            cap = c / m if sign > 0 else c / (1 - m)
+        lm = np.minimum(lam, cap[:, None])
+        logk = np.cumsum(np.log1p(sign * lm * (x - m[:, None])), axis=1)
+        return logk.max(axis=1) >= level
 
-def hedged_ci_reference(x: np.ndarray, alpha: float, c: float = C_TRUNC,
-                        theta: float = 0.5) -> tuple[float, float]:
-    """(lower, upper) of WSR's hedged-capital (1 - alpha) CI (module doc)."""
-    lam_p = _plugin_bets_ref(x, alpha * theta)
-    lam_m = _plugin_bets_ref(x, alpha * (1 - theta))
-
-    def rejected(m: float) -> tuple[bool, bool]:
-        m = np.float64(m)  # m = 0 or 1 (all-0 / all-1 samples): the cap is +inf, not an error
-        with np.errstate(divide="ignore", invalid="ignore"):
-            kp = np.cumprod(1 + np.minimum(lam_p, c / m) * (x - m))
-            km = np.cumprod(1 - np.minimum(lam_m, c / (1 - m)) * (x - m))
-        return bool(np.any(theta * kp >= 1 / alpha)), bool(np.any((1 - theta) * km >= 1 / alpha))
-
-    mean = float(np.mean(x))
-    a, b = 0.0, mean  # lower end: K+ rejects at a (or a = 0), not at b
-    for _ in range(50):
+    mean = x.mean(axis=1)
+    a, b = np.zeros(r), mean.copy()  # lower end: rejected at a (or a = 0), not at b
+    for _ in range(n_iter):
         mid = 0.5 * (a + b)
-        a, b = (mid, b) if rejected(mid)[0] else (a, mid)
+        h = hit(mid, +1)
+        a, b = np.where(h, mid, a), np.where(h, b, mid)
     lower = b
-    a, b = mean, 1.0
-    for _ in range(50):
+    a, b = mean.copy(), np.ones(r)
+    for _ in range(n_iter):
         mid = 0.5 * (a + b)
-        a, b = (a, mid) if rejected(mid)[1] else (mid, b)
+        h = hit(mid, -1)
+        a, b = np.where(h, a, mid), np.where(h, mid, b)
     return lower, a
 
 
-def _confseq_check(x: np.ndarray, alpha: float, lower: float, upper: float) -> str:
-    """Cross-check against confseq's own capital process when it is installed."""
-    try:
-        from confseq.betting import betting_mart
-        from confseq.betting_strategies import lambda_predmix_eb
-    except ImportError:
-        return "confseq not installed: cross-check skipped"
-    n = len(x)
-    fn = lambda z, m: lambda_predmix_eb(z, alpha=alpha / 2, fixed_n=n)  # noqa: E731
-    bad = 0
-    for m, inside in ((lower + 1e-6, True), (upper - 1e-6, True),
-                      (lower - 1e-3, False), (upper + 1e-3, False)):
-        if not 0 < m < 1:
-            continue
-        k = betting_mart(x, m, alpha=alpha, lambdas_fn_positive=fn, lambdas_fn_negative=fn,
-                         trunc_scale=C_TRUNC, m_trunc=True)
-        bad += (np.max(k) < 1 / alpha) != inside
-    return f"confseq cross-check: {bad} disagreement(s)"
+def hoeffding(x: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    h = math.sqrt(math.log(2 / alpha) / (2 * x.shape[1]))
+    m = x.mean(axis=1)
+    return np.maximum(0.0, m - h), np.minimum(1.0, m + h)
 
 
-def _samples(xs: list[np.ndarray]) -> HypothesisSamples:
-    g = len(xs)
-    r = Ragged.from_groups(xs)
-    return HypothesisSamples(np.zeros(g), np.ones(g), np.array([len(x) for x in xs]), r, r)
+def _samples(x: np.ndarray) -> HypothesisSamples:
+    r, n = x.shape
+    g = Ragged(x.ravel().copy(), np.arange(0, r * n + 1, n, dtype=np.int64))
+    return HypothesisSamples(np.zeros(r), np.ones(r), np.full(r, n), g, g)
 
 
-def project_ci(xs: list[np.ndarray], alpha: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    b = betting_bounds(_samples(xs), alpha, tune_alpha=alpha, bets="plugin", seed=seed)
-    return b["lower_twin"], b["upper_twin"]
+def _shrunk_var(x0: np.ndarray) -> np.ndarray:
+    """WSR's shrunk variance estimate (1/4 + sum (x - mean)^2) / (n0 + 1), per row."""
+    return (0.25 + ((x0 - x0.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)) / (x0.shape[1] + 1)
 
 
-def order_free_ci(xs: list[np.ndarray], alpha: float, seed: int, orders: int
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The order-free interval: terminal capital averaged over ``orders`` seeded orders."""
-    s = _samples(xs)
-    tw = ordered_sides(s, alpha / 2, seed=seed, orders=orders)[2]
-    lev = np.full(len(xs), np.log(2 / alpha))
-    return (_bound(tw, lev, +1, False, C_TRUNC), _bound(tw, lev, -1, False, C_TRUNC))
+def constant_ci(x: np.ndarray, alpha: float, lams: list[np.ndarray]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Interval of the uniform mixture of constant bets ``lams`` (each (R,)), terminal
+    capital, truncated at c/m, c/(1-m): a symmetric function of each row of x."""
+    r, n = x.shape
+    j = len(lams)
+    side = OrderedSide(np.tile(x.ravel(), j), np.concatenate([np.repeat(lam, n) for lam in lams]),
+                       np.arange(0, j * r * n + 1, n, dtype=np.int64), j)
+    lev = np.full(r, np.log(2 / alpha))
+    return _bound(side, lev, +1, False, C_TRUNC), _bound(side, lev, -1, False, C_TRUNC)
+
+
+def bet_at(var: np.ndarray, n: int, alpha: float) -> np.ndarray:
+    return np.sqrt(2 * np.log(2 / alpha) / (n * np.asarray(var, float)))
+
+
+def variant_ci(name: str, x: np.ndarray, alpha: float, var: float, rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray]:
+    r, n = x.shape
+    if name in ("plugin", "plugin:16", "mixture"):
+        kind, _, k = name.partition(":")
+        opts = {"orders": int(k)} if k else {}
+        b = betting_bounds(_samples(x), alpha, tune_alpha=alpha, bets=kind, **opts)
+        return b["lower_twin"], b["upper_twin"]
+    if name == "const-oracle":
+        return constant_ci(x, alpha, [bet_at(np.full(r, var), n, alpha)])
+    if name == "const-pilot":
+        k = math.ceil(math.sqrt(n))
+        return constant_ci(x[:, k:], alpha, [bet_at(_shrunk_var(x[:, :k]), n - k, alpha)])
+    n0 = max(1, round(n / 19))
+    draw = DISTRIBUTIONS[_current[0]][0]
+    lam = bet_at(_shrunk_var(draw(rng, (r, n0))), n, alpha)
+    if name == "const-D0":
+        return constant_ci(x, alpha, [lam])
+    if name == "mix-D0":
+        return constant_ci(x, alpha, [lam / 1.5, lam, lam * 1.5])
+    raise ValueError(name)
+
+
+_current = [""]  # distribution being run (the D0 sample is drawn from it)
+
+
+def cp_upper(k: int, n: int) -> float:
+    """Clopper-Pearson 95 % upper bound of a binomial rate."""
+    return 1.0 if k >= n else float(stats.beta.ppf(0.975, k + 1, n - k))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--reps", type=int, default=200, help="replicates for the width ratio")
-    ap.add_argument("--coverage-reps", type=int, default=2000)
-    ap.add_argument("--orders", type=int, default=16)
-    ap.add_argument("--ns", type=int, nargs="+", default=[20, 100, 1000])
+    ap.add_argument("--reps", type=int, default=1000, help="replicates per cell (widths)")
+    ap.add_argument("--coverage-reps", type=int, default=10000,
+                    help="further replicates per cell for the default's coverage")
+    ap.add_argument("--ns", type=int, nargs="+", default=[20, 50, 200, 1000])
     ap.add_argument("--alphas", type=float, nargs="+", default=[0.05, 1e-4])
     ap.add_argument("--distributions", nargs="+", default=list(DISTRIBUTIONS),
                     choices=list(DISTRIBUTIONS))
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--merge", nargs="+", help="print the tables from these runs' outputs")
     args = ap.parse_args()
-    rng = np.random.default_rng(0)
-    print(f"c = {C_TRUNC}; width ratio = mean width project / mean width reference "
-          f"({args.reps} reps); order-free: K = {args.orders} orders, terminal capital")
-    print("| distribution | n | alpha | project / WSR | order-free / WSR | miss below | "
-          "miss above | nominal per side |")
-    print("|---|---|---|---|---|---|---|---|")
-    worst = 0.0
-    for name in args.distributions:
-        draw, mu = DISTRIBUTIONS[name]
+    if args.merge:
+        merge(args.merge)
+        return
+    print("#args " + json.dumps({"reps": args.reps, "coverage_reps": args.coverage_reps}))
+    rng = np.random.default_rng(args.seed)
+    rows = []
+    t0 = time.monotonic()
+    for dist in args.distributions:
+        _current[0] = dist
+        draw, mu, var = DISTRIBUTIONS[dist]
         for n in args.ns:
             for alpha in args.alphas:
-                xs = [draw(rng, n) for _ in range(args.reps)]
-                lo, up = project_ci(xs, alpha, seed=1)
-                # the reference sees each sample in the project's (seeded) order, so the
-                # ratio measures the algorithms, not the luck of two different orders
-                tw = ordered_sides(_samples(xs), alpha / 2, seed=1)[2]
-                ref = np.array([hedged_ci_reference(tw.x[tw.offsets[i]: tw.offsets[i + 1]], alpha)
-                                for i in range(len(xs))])
-                flo, fup = order_free_ci(xs, alpha, seed=1, orders=args.orders)
-                ratio = np.mean(up - lo) / np.mean(ref[:, 1] - ref[:, 0])
-                ratio_f = np.mean(fup - flo) / np.mean(ref[:, 1] - ref[:, 0])
-                worst = max(worst, ratio)
-                cov = [draw(rng, n) for _ in range(args.coverage_reps)]
-                clo, cup = project_ci(cov, alpha, seed=2)
-                below, above = np.mean(clo > mu), np.mean(cup < mu)
-                se = 2 * np.sqrt(alpha / 2 * (1 - alpha / 2) / args.coverage_reps)
-                print(f"| {name} | {n} | {alpha:g} | {ratio:.3f} | {ratio_f:.3f} | "
-                      f"{below:.4f} | {above:.4f} | {alpha / 2:g} (2 SE {se:.4f}) |",
+                x = draw(rng, (args.reps, n))
+                # the order the default uses (data order); WSR sees the same sequences
+                xo = ordered_sides(_samples(x), alpha / 2, order="data")[2].x.reshape(x.shape)
+                w_lo, w_up = wsr_reference(xo, alpha)
+                h_lo, h_up = hoeffding(x, alpha)
+                w, hw = np.mean(w_up - w_lo), np.mean(h_up - h_lo)
+                row = {"dist": dist, "n": n, "alpha": alpha, "wsr": w, "hoef": hw,
+                       "miss": {"wsr": int(np.sum((w_lo > mu) | (w_up < mu))),
+                                "hoeffding": int(np.sum((h_lo > mu) | (h_up < mu)))},
+                       "ratio": {}, "wider_hoef": {}}
+                for v in args.variants:
+                    lo, up = variant_ci(v, x, alpha, var, rng)
+                    row["ratio"][v] = np.mean(up - lo) / w
+                    row["wider_hoef"][v] = float(np.mean((up - lo) > (h_up - h_lo) + 1e-12))
+                    row["miss"][v] = int(np.sum((lo > mu) | (up < mu)))
+                if args.coverage_reps and "plugin" in args.variants:
+                    miss = 0
+                    for k in range(0, args.coverage_reps, 2000):
+                        xc = draw(rng, (min(2000, args.coverage_reps - k), n))
+                        lo, up = variant_ci("plugin", xc, alpha, var, rng)
+                        miss += int(np.sum((lo > mu) | (up < mu)))
+                    row["cov_miss"] = miss
+                rows.append(row)
+                print(f"# {dist} n={n} alpha={alpha:g} done ({time.monotonic() - t0:.0f} s)",
                       flush=True)
-    print(f"\nworst width ratio project / WSR: {worst:.3f} (target <= 1.00)")
-    x = DISTRIBUTIONS["Beta(2,5)"][0](rng, 100)
-    lo, up = hedged_ci_reference(x, 0.05)
-    print(_confseq_check(x, 0.05, lo, up))
+                print("#row " + json.dumps(row), flush=True)
+    report(rows, args.variants, args.reps, args.coverage_reps)
+    print(f"total {time.monotonic() - t0:.0f} s")
+
+
+def report(rows: list[dict], vs: list[str], reps: int, coverage_reps: int) -> None:
+    """The three tables and the worst ratios, from the per-cell rows."""
+    args = argparse.Namespace(reps=reps, coverage_reps=coverage_reps)
+    print(f"\nwidth / hedged WSR width (mean over {args.reps} replicates; c = {C_TRUNC})\n")
+    print("| distribution | n | alpha | WSR width | Hoeffding | " + " | ".join(vs) + " |")
+    print("|---|---|---|---|---|" + "---|" * len(vs))
+    for r in rows:
+        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {r['wsr']:.4f} | "
+              f"{r['hoef'] / r['wsr']:.3f} | "
+              + " | ".join(f"{r['ratio'][v]:.3f}" for v in vs) + " |")
+    print("\nwidth / Hoeffding width (mean); in brackets: share of replicates where the "
+          "variant is wider than Hoeffding\n")
+    print("| distribution | n | alpha | WSR | " + " | ".join(vs) + " |")
+    print("|---|---|---|---|" + "---|" * len(vs))
+    for r in rows:
+        q = r["wsr"] / r["hoef"]
+        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {q:.3f} | "
+              + " | ".join(f"{r['ratio'][v] * q:.3f} ({r['wider_hoef'][v]:.0%})" for v in vs)
+              + " |")
+    print(f"\ncoverage: misses (true mean outside the interval) over {args.reps} replicates; "
+          f"nominal alpha; last column: the default over {args.coverage_reps} more "
+          "(95 % Clopper-Pearson upper bound)\n")
+    names = ["wsr", "hoeffding", *vs]
+    print("| distribution | n | alpha | " + " | ".join(names) + " | plugin, more reps |")
+    print("|---|---|---|" + "---|" * (len(names) + 1))
+    for r in rows:
+        cm = r.get("cov_miss")
+        more = (f"{cm} / {args.coverage_reps} (<= {cp_upper(cm, args.coverage_reps):.2g})"
+                if cm is not None else "-")
+        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | "
+              + " | ".join(str(r["miss"][v]) for v in names) + f" | {more} |")
+    worst = {v: max(r["ratio"][v] for r in rows) for v in vs}
+    over_h = {v: max(r["ratio"][v] * r["wsr"] / r["hoef"] for r in rows) for v in vs}
+    print("\nworst ratio to WSR: " + ", ".join(f"{v} {worst[v]:.3f}" for v in vs))
+    print("worst ratio to Hoeffding: " + ", ".join(f"{v} {over_h[v]:.3f}" for v in vs))
+
+
+def merge(paths: list[str]) -> None:
+    """Tables from the ``#row`` lines of runs split by ``--distributions`` (parallel jobs)."""
+    rows = [json.loads(line[5:]) for p in paths for line in open(p) if line.startswith("#row ")]
+    vs = [v for v in VARIANTS if v in rows[0]["ratio"]]
+    head = [line for line in open(paths[0]) if line.startswith("#args ")]
+    a = json.loads(head[0][6:])
+    report(rows, vs, a["reps"], a["coverage_reps"])
 
 
 if __name__ == "__main__":

@@ -23,7 +23,11 @@ def main(sm):
     )
     counts = pd.DataFrame({"hyp_id": hyps["hyp_id"], "n": obs.n, "n_follow": obs.follow.sizes})
     follow = pd.DataFrame(
-        {"hyp_id": hyps["hyp_id"].to_numpy()[obs.follow.group_ids()], "value": obs.follow.values}
+        {
+            "hyp_id": hyps["hyp_id"].to_numpy()[obs.follow.group_ids()],
+            "value": obs.follow.values,
+            "pos": obs.follow_pos.values.astype("int64"),  # betting's data order
+        }
     )
     log.info(
         "%d hypotheses; median n %.0f; %d follower outcomes",

@@ -64,8 +64,8 @@ def brute_obs(hyps, x, actions, states):
                 big_n += 1
             if all(h.bins[s] in (WHOLE_SPACE, codes[i, s]) for s in range(big_n + 1)):
                 n += 1
-                if big_n == h.t:
-                    follow.append(x[i, h.t, FEATURES.index(h.outcome)])
+                if big_n == h.t:  # (value, position among the entering ones, stay order)
+                    follow.append((x[i, h.t, FEATURES.index(h.outcome)], n - 1))
         out.append((n, sorted(follow)))
     return out
 
@@ -76,7 +76,9 @@ def test_observational_side_matches_brute_force():
     obs = bounds.observational_side(hyps, x, actions, states)
     for h, (n, follow) in enumerate(brute_obs(hyps, x, actions, states)):
         assert obs.n[h] == n
-        np.testing.assert_allclose(np.sort(obs.follow.group(h)), follow)
+        got = sorted(zip(obs.follow.group(h), obs.follow_pos.group(h), strict=True))
+        np.testing.assert_allclose(np.array(got).reshape(-1, 2),
+                                   np.array(follow).reshape(-1, 2))
 
 
 def test_observational_side_chunking_does_not_change_results(monkeypatch):
@@ -87,6 +89,7 @@ def test_observational_side_chunking_does_not_change_results(monkeypatch):
     chunked = bounds.observational_side(hyps, x, actions, states)
     np.testing.assert_array_equal(whole.n, chunked.n)
     np.testing.assert_array_equal(whole.follow.values, chunked.follow.values)
+    np.testing.assert_array_equal(whole.follow_pos.values, chunked.follow_pos.values)
 
 
 def test_bounds_identity_and_sandwich():

@@ -172,10 +172,11 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     assert list(twin.group(0)) == [5.0] and list(twin.group(1)) == [5.0]
 
 
-@pytest.mark.parametrize("bets", [{"bets": "plugin", "seed": 3, "orders": 4}, {}])
+@pytest.mark.parametrize("bets", [{"bets": "plugin", "seed": 3, "orders": 4, "order": "seed"},
+                                  {}, {"bets": "mixture"}])
 def test_betting_worst_case_uses_one_order_and_the_family_tuning(bets):
     """Every completion k is evaluated with the hypothesis' own orders (plug-in bets; the
-    default mixture has none) and the tuning of the whole family: equal to evaluating the
+    mixture has none) and the tuning of the whole family: equal to evaluating the
     completions on the full set of hypotheses."""
     from functools import partial
 

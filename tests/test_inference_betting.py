@@ -154,7 +154,7 @@ def test_vectorised_matches_per_hypothesis_reference():
     s = _small_case(seed=9, h=10)
     alpha0, c = 0.01, 0.9
     p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, bets="plugin", orders=1)
-    lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c)
+    lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c, order="data")
     for h in range(len(s)):
         xl = lo.x[lo.offsets[h]: lo.offsets[h + 1]]
         xu = up.x[up.offsets[h]: up.offsets[h + 1]]
@@ -248,7 +248,7 @@ def test_order_average_matches_per_hypothesis_reference():
     s = _small_case(seed=9, h=6)
     alpha0, c, k = 0.01, 0.9, 4
     p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, bets="plugin", orders=k)
-    lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c, orders=k)
+    lo, up, tw = ordered_sides(s, alpha0 / 2, seed=0, c=c, orders=k, order="data")
     g = len(s)
 
     def copies(side, h):
@@ -299,7 +299,8 @@ def test_averaging_orders_shrinks_the_seed_spread():
     h = 60
     s = _replicates(rng, h, 200, 0.8, lambda k: rng.beta(2, 2, k),
                     lambda k: np.clip(rng.beta(2, 2, k) - 0.2, 0, 1))
-    p1, p16 = (np.array([betting_test(s, tune_alpha=1e-3, bets="plugin", orders=k, seed=sd)[0]
+    p1, p16 = (np.array([betting_test(s, tune_alpha=1e-3, bets="plugin", orders=k, seed=sd,
+                                      order="seed")[0]
                          for sd in range(5)]) for k in (1, 16))
     ok = (p1.max(axis=0) < 0.5) & (p16.max(axis=0) < 0.5)
     assert ok.sum() >= 20
@@ -311,7 +312,7 @@ def test_averaging_orders_shrinks_the_seed_spread():
     assert many < 0.5 * one, (one, many)
 
 
-# --- order-free grid mixture (the default bets) ------------------------------------------
+# --- order-free grid mixture (bets: mixture) ------------------------------------------------
 
 
 def _mixture_reference_p(x_large, x_small, delta0, c, grid=MIX_GRID, ratio=MIX_RATIO):
@@ -330,7 +331,7 @@ def _mixture_reference_p(x_large, x_small, delta0, c, grid=MIX_GRID, ratio=MIX_R
 def test_mixture_matches_per_hypothesis_reference():
     s = _small_case(seed=9, h=10)
     alpha0, c = 0.01, 0.9
-    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6)
+    p_lo, p_up = betting_test(s, tune_alpha=alpha0, c=c, tol=1e-6, bets="mixture")
     for h in range(len(s)):
         xl, xu = s.obs_side("lo").group(h), s.obs_side("up").group(h)
         xt = s.twin_f.group(h)
@@ -343,18 +344,18 @@ def test_mixture_p_values_are_order_free_and_seed_free():
     """The mixture's p is a symmetric function of each sample: any permutation of the
     followers or of the twin runs, and any seed, give the identical p-value (0 flips)."""
     s = _small_case(seed=12, h=12)
-    base = betting_test(s, tune_alpha=1e-3)
+    base = betting_test(s, tune_alpha=1e-3, bets="mixture")
     rng = np.random.default_rng(0)
     perm = HypothesisSamples(
         s.y_lo, s.y_up, s.n,
         Ragged.from_groups([rng.permutation(s.follow.group(h)) for h in range(len(s))]),
         Ragged.from_groups([rng.permutation(s.twin.group(h)) for h in range(len(s))]))
     for sd in range(5):
-        other = betting_test(perm, tune_alpha=1e-3, seed=sd)
+        other = betting_test(perm, tune_alpha=1e-3, seed=sd, bets="mixture")
         np.testing.assert_allclose(other[0], base[0], rtol=1e-9)
         np.testing.assert_allclose(other[1], base[1], rtol=1e-9)
     # the plug-in bets, by contrast, do see the order
-    p1 = [betting_test(s, tune_alpha=1e-3, bets="plugin", orders=1, seed=sd)[0]
+    p1 = [betting_test(s, tune_alpha=1e-3, bets="plugin", orders=1, seed=sd, order="seed")[0]
           for sd in range(3)]
     assert not np.allclose(p1[0], p1[1])
 
@@ -365,7 +366,7 @@ def test_mixture_p_values_valid_at_the_null_boundary(n):
     rng = np.random.default_rng(16 + n)
     reps = 2000
     s = _replicates(rng, reps, n, 1.0, lambda k: rng.beta(2, 5, k), lambda k: rng.beta(2, 5, k))
-    p_lo, p_up = betting_test(s, tune_alpha=0.2)
+    p_lo, p_up = betting_test(s, tune_alpha=0.2, bets="mixture")
     for a in (0.05, 0.2, 0.5):
         se = 3 * np.sqrt(a * (1 - a) / reps)
         assert np.mean(p_lo <= a) <= a + se
@@ -374,10 +375,12 @@ def test_mixture_p_values_valid_at_the_null_boundary(n):
 
 @pytest.mark.parametrize("opts, match", [
     ({"bets": "kelly"}, "bets must be one of"),
-    ({"orders": 4}, "apply to bets: plugin"),
-    ({"running_max": True}, "apply to bets: plugin"),
-    ({"grid": 0}, "grid must be >= 1"),
-    ({"grid_ratio": 1.0}, "grid_ratio > 1"),
+    ({"bets": "mixture", "orders": 4}, "apply to bets: plugin"),
+    ({"bets": "mixture", "running_max": True}, "apply to bets: plugin"),
+    ({"bets": "mixture", "order": "data"}, "apply to bets: plugin"),
+    ({"bets": "plugin", "order": "hash"}, "order must be one of"),
+    ({"bets": "mixture", "grid": 0}, "grid must be >= 1"),
+    ({"bets": "mixture", "grid_ratio": 1.0}, "grid_ratio > 1"),
     ({"bets": "plugin", "orders": 4, "running_max": True}, "running_max needs orders = 1"),
 ])
 def test_bad_betting_options_are_config_errors(opts, match):
@@ -386,5 +389,84 @@ def test_bad_betting_options_are_config_errors(opts, match):
 
     with pytest.raises(ValueError, match=match):
         betting_test(_small_case(h=2), **opts)
-    with pytest.raises(ContractError, match="testing.methods.betting: .*" + match):
+    # a value's own type/range is named by its key (inference.options), a combination by
+    # make_bets' message
+    either = r"testing\.methods\.betting(: .*" + match + r"|\.\w+: .* is not allowed)"
+    with pytest.raises(ContractError, match=either):
         make("betting", opts, seed=0)
+
+
+# --- data order (the default: plug-in bets, no seed) -----------------------------------------
+
+
+def _with_positions(s, rng):
+    """``s`` with every follower at a random position among its hypothesis' n entering ones."""
+    pos = Ragged.from_groups([rng.permutation(int(s.n[h]))[: s.n_follow[h]].astype(float)
+                              for h in range(len(s))])
+    return HypothesisSamples(s.y_lo, s.y_up, s.n, s.follow, s.twin, follow_pos=pos)
+
+
+def test_data_order_is_seed_free():
+    """The default p-values do not depend on the seed: 0 decisions can flip across seeds."""
+    s = _with_positions(_small_case(seed=12, h=12), np.random.default_rng(1))
+    base = betting_test(s, tune_alpha=1e-3)
+    assert (base[0] < 0.5).sum() >= 2  # rejections exercised
+    for sd in range(1, 5):
+        other = betting_test(s, tune_alpha=1e-3, seed=sd)
+        np.testing.assert_array_equal(other[0], base[0])
+        np.testing.assert_array_equal(other[1], base[1])
+    seeded = [betting_test(s, tune_alpha=1e-3, seed=sd, order="seed")[0] for sd in range(2)]
+    assert not np.allclose(seeded[0], seeded[1])  # a seeded order does see the seed
+
+
+def test_data_order_places_followers_at_their_positions():
+    """Brute force: the observational sequence is the stay-order sequence (followers at
+    follow_pos, fill values elsewhere) permuted by the seedless hash; the listing order of
+    the followers (with their positions) does not matter."""
+    from twinfalsify.inference.betting import _order_keys
+
+    rng = np.random.default_rng(5)
+    s = _with_positions(_small_case(seed=2, h=6), rng)
+    lo, up, _ = ordered_sides(s, 0.01, order="data")
+    for h in range(len(s)):
+        n = int(s.n[h])
+        seq_lo, seq_up = np.zeros(n), np.ones(n)
+        p = s.follow_pos.group(h).astype(int)
+        seq_lo[p] = seq_up[p] = s.follow_f.group(h)
+        perm = _order_keys(np.array([n]), np.array([h]), np.zeros(1, np.int64), None, 1)
+        np.testing.assert_array_equal(lo.x[lo.offsets[h]: lo.offsets[h + 1]], seq_lo[perm])
+        np.testing.assert_array_equal(up.x[up.offsets[h]: up.offsets[h + 1]], seq_up[perm])
+    # shuffle the listing of each hypothesis' followers together with their positions
+    shuf = [rng.permutation(s.n_follow[h]) for h in range(len(s))]
+    t = HypothesisSamples(
+        s.y_lo, s.y_up, s.n,
+        Ragged.from_groups([s.follow.group(h)[shuf[h]] for h in range(len(s))]), s.twin,
+        follow_pos=Ragged.from_groups([s.follow_pos.group(h)[shuf[h]] for h in range(len(s))]))
+    np.testing.assert_array_equal(betting_test(t, tune_alpha=1e-3)[0],
+                                  betting_test(s, tune_alpha=1e-3)[0])
+
+
+def test_follow_pos_checked():
+    s = _small_case(h=2)
+    bad = Ragged.from_groups([np.arange(s.n_follow[0], dtype=float) + s.n[0],
+                              np.zeros(s.n_follow[1])])
+    with pytest.raises(ValueError, match="follow_pos"):
+        HypothesisSamples(s.y_lo, s.y_up, s.n, s.follow, s.twin, follow_pos=bad)
+    dup = Ragged.from_groups([np.zeros(s.n_follow[0]), np.arange(s.n_follow[1], dtype=float)])
+    with pytest.raises(ValueError, match="share a position"):
+        betting_test(HypothesisSamples(s.y_lo, s.y_up, s.n, s.follow, s.twin, follow_pos=dup))
+
+
+@pytest.mark.parametrize("p_follow", [0.3, 0.8])
+def test_data_order_valid_at_the_null_boundary(p_follow):
+    """Type-I error by simulation with followers at random stay positions (as in D):
+    Q_twin = Q_lo, P(p_lo <= a) <= a. Y_lo's mean is p_follow E[x]."""
+    rng = np.random.default_rng(40 + int(10 * p_follow))
+    reps, n = 3000, 80
+    mu = p_follow * 2 / 7
+    s = _replicates(rng, reps, n, p_follow, lambda k: rng.beta(2, 5, k),
+                    lambda k: (rng.random(k) < mu).astype(float))
+    s = _with_positions(s, rng)
+    p_lo, _ = betting_test(s, tune_alpha=0.2)
+    for a in (0.05, 0.2, 0.5):
+        assert np.mean(p_lo <= a) <= a + 3 * np.sqrt(a * (1 - a) / reps)

@@ -43,6 +43,9 @@ def _bmatch(bins: np.ndarray, codes: np.ndarray) -> np.ndarray:
 class ObservationalSide:
     n: np.ndarray  # (H,) entering trajectories
     follow: Ragged  # raw outcomes of followers
+    # aligned with ``follow``: each follower's position among the hypothesis' n entering
+    # trajectories, D listed by stay id (the betting test's data order); None: unknown
+    follow_pos: Ragged | None = None
 
 
 def observational_side(
@@ -56,6 +59,7 @@ def observational_side(
     h_total = len(hyps)
     n_enter = np.zeros(h_total, dtype=np.int64)
     groups: list[np.ndarray] = [np.zeros(0)] * h_total
+    pos_groups: list[np.ndarray] = [np.zeros(0)] * h_total
     a_pad = padded(hyps, "actions", t_max)
     b_pad = padded(hyps, "bins", t_max + 1)
     t_h = hyps["t"].to_numpy(np.int64)
@@ -73,17 +77,21 @@ def observational_side(
             n_enter[hs] = enter.sum(axis=1)
             hh, ii = np.nonzero(follow)
             vals = y[ii, t_h[hs][hh]]
+            # rows of x are D's stays by stay id: rank among the entering ones
+            pos = (np.cumsum(enter, axis=1) - 1)[hh, ii]
             cuts = np.searchsorted(hh, np.arange(1, len(hs)))
-            for j, v in enumerate(np.split(vals, cuts)):
+            for j, (v, p) in enumerate(zip(np.split(vals, cuts), np.split(pos, cuts), strict=True)):
                 groups[hs[j]] = v
-    return ObservationalSide(n=n_enter, follow=Ragged.from_groups(groups))
+                pos_groups[hs[j]] = p
+    return ObservationalSide(n=n_enter, follow=Ragged.from_groups(groups),
+                             follow_pos=Ragged.from_groups(pos_groups))
 
 
 def observational_side_from_tables(
     hyps: pd.DataFrame, counts: pd.DataFrame, follow: pd.DataFrame
 ) -> ObservationalSide:
-    """The observational_side rule's tables (counts: hyp_id, n; follow: hyp_id, value) ->
-    ObservationalSide aligned to ``hyps``' order."""
+    """The observational_side rule's tables (counts: hyp_id, n; follow: hyp_id, value, pos)
+    -> ObservationalSide aligned to ``hyps``' order."""
     ids = hyps["hyp_id"].to_numpy()
     n = counts.set_index("hyp_id")["n"].reindex(ids)
     if n.isna().any():
@@ -91,10 +99,15 @@ def observational_side_from_tables(
             f"observational counts lack {int(n.isna().sum())} hypothesis id(s), "
             f"e.g. {int(ids[n.isna().to_numpy()][0])}: rerun the observational_side rule"
         )
-    follow_side = Ragged.from_grouped(
-        follow["hyp_id"].to_numpy(), follow["value"].to_numpy(), ids
-    )
-    return ObservationalSide(n=n.to_numpy(np.int64), follow=follow_side)
+    if "pos" not in follow.columns:
+        raise ContractError(
+            "follower outcomes lack column 'pos' (position among entering trajectories): "
+            "rerun the observational_side rule"
+        )
+    hid = follow["hyp_id"].to_numpy()
+    follow_side = Ragged.from_grouped(hid, follow["value"].to_numpy(), ids)
+    pos = Ragged.from_grouped(hid, follow["pos"].to_numpy(), ids)  # same stable grouping
+    return ObservationalSide(n=n.to_numpy(np.int64), follow=follow_side, follow_pos=pos)
 
 
 def read_observational_side(
@@ -172,4 +185,5 @@ def hypothesis_samples(
         n=obs.n,
         follow=obs.follow,
         twin=twin,
+        follow_pos=obs.follow_pos,
     )

@@ -1,7 +1,7 @@
 """Exact test of H_lo / H_up from betting confidence bounds (Waudby-Smith & Ramdas 2024).
 
 Bounds. Rescale a side's sample to x_i = (clip(y_i) - y_lo) / R in [0, 1] (R = y_up - y_lo),
-put it in a seeded random order (see below) and, for a candidate mean m, form the
+put it in its data order (see "Order" below) and, for a candidate mean m, form the
 capital processes (WSR 2024, Sec. 4, "hedged capital", one-sided halves):
 
     K+_t(m) = prod_{i<=t} (1 + lambda+_i(m) (x_i - m)),   lambda+_i(m) = min(lambda_i, c / m),
@@ -40,13 +40,40 @@ Validity: under H_lo (Q_twin >= Q_lo) any such m is either >= Q_lo (then
 K+_lo(Q_lo) >= 2/alpha, probability <= alpha/2) or < Q_twin (then K-_twin(Q_twin) >=
 2/alpha, probability <= alpha/2).
 
-Order ("plugin" bets). The bound depends on the order of the sample. The compact
-observational sample lists followers first; the order used is a uniformly random permutation
-(seeded; independent of the data), drawn for the observational sample (shared by
-Y_lo and Y_up) and for the twin sample. Same seed, same p-values. ``orders`` K > 1 averages
-the terminal capital over K such orders (an average of e-values is an e-value, Markov).
+Order ("plugin" bets, the default). The bound depends on the order of the sample; the
+argument above needs only that the sequence be i.i.d., i.e. that the order not depend on the
+values. ``order: data`` (default) takes it from the data, with no seed:
 
-Order-free mixture ("mixture" bets, the default). Replace the predictable bet by a
+- observational side: the n entering trajectories listed by stay id (``samples.follow_pos``:
+  each follower's rank among them; the n - n_follow others carry the fill value), then
+  permuted by a fixed hash of (hypothesis key, position) (splitmix64, no seed). The D
+  patients are i.i.d. and a stay id carries no information on the outcomes (assumed, as for
+  any listing), so the entering ones in stay-id order are i.i.d. given n; a permutation that
+  depends on (hypothesis, n) only keeps them i.i.d., whatever the hash. The listing order of
+  the rows does not matter, only the stay ids.
+- twin side: the entering runs in the plan's X_0 order (X_0 drawn without replacement from D
+  in a random order fixed by the study's seed, part of the data like the twin's noise), i.e.
+  an i.i.d. sequence, permuted by the same fixed hash. Failed-run completions (``failures``)
+  are appended and interleaved by the hash.
+
+Hence a p-value is a function of the data (values and stay ids, run order) only: the same
+data always give the same p-value, and no seed can change a decision. It is not a symmetric
+function of the values (another stay numbering would give another order); ``bets: mixture``
+is, at a measured price in width (below). Without ``follow_pos`` (samples built by hand) the
+followers are taken as listed first and the hash permutation stands in for a random one.
+``order: seed``: a uniformly random permutation seeded by the config seed instead (the
+earlier behaviour; same seed, same p-values). ``orders`` K > 1 averages the terminal capital
+over K hash (or seeded) orders (an average of e-values is an e-value, Markov).
+
+Why not an order-free default. An order-free (symmetric) p-value cannot use the running
+maximum over t, which depends on the order, so it rests on the terminal capital. Measured
+(``benchmarks/bench_betting_wsr.py``, docs/explanation/statistics.md): even the constant bet
+tuned at the TRUE variance, the best any bet tuned on independent data (D0, a pilot) can
+approach, is wider than WSR's running-maximum interval (up to ~1.13x at alpha = 0.05); the
+grid mixture, 16 averaged orders, D0-tuned and pilot-tuned constant bets are wider still.
+The plug-in in data order is WSR's interval itself (ratio 1.00) and seed-free.
+
+Order-free mixture ("mixture" bets). Replace the predictable bet by a
 uniform mixture over a fixed grid of J constant bets,
 
     E+(m) = (1/J) sum_j prod_{i<=n} (1 + min(lambda_j, c/m) (x_i - m)),   E- mirrored,
@@ -61,17 +88,21 @@ values, so each product is a product of independent factors with mean <= 1 under
 on the order of its factors: the p-value is a symmetric function of each sample, so no seed
 enters and no decision can flip with one. Each factor is monotone in m as above, so E+ is
 non-increasing (E- non-decreasing) and the crossing and union arguments below hold with E in
-place of max_t K. The price of the fixed grid: log J nats at the best bet (J = 6: 1.8) and a
-discretisation of the best bet by at most a factor sqrt(r); measured in
-docs/explanation/statistics.md.
+place of max_t K. The price of the fixed grid, when the best constant bet lies inside the
+grid [lambda_min, lambda_min r^(J-1)]: log J nats (J = 6: 1.8) and a discretisation of the
+best bet by at most a factor sqrt(r); a best bet outside the grid (variance below
+1/(4 r^(2(J-1))), or a gap needing a bet below lambda_min) costs more, without bound.
+Measured in docs/explanation/statistics.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
 Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are
 made); any delta0 gives valid bounds, it only moves where they are tightest.
 
-Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; sides
-independent. Reference: I. Waudby-Smith & A. Ramdas (2024), "Estimating means of
-bounded random variables by betting", JRSS-B 86(1):1-27; Ville (1939).
+Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; data order as
+above. The sides need not be independent (the union rule is a union bound over two
+marginally valid bounds; the twin's X_0 come from the same D patients). Reference:
+I. Waudby-Smith & A. Ramdas (2024), "Estimating means of bounded random variables by
+betting", JRSS-B 86(1):1-27; Ville (1939).
 """
 
 from __future__ import annotations
@@ -84,7 +115,8 @@ import numpy as np
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
-BETS = ("mixture", "plugin")  # order-free grid mixture (default) | WSR predictable plug-in
+BETS = ("plugin", "mixture")  # WSR predictable plug-in (default) | order-free grid mixture
+ORDER_KINDS = ("data", "seed")  # plug-in order: fixed by the data (default) | seeded
 MIX_GRID = 6  # J constant bets in the mixture (power against J: docs/explanation/statistics.md)
 MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
 
@@ -242,23 +274,30 @@ def _mix64(z: np.ndarray) -> np.ndarray:
     return z ^ (z >> np.uint64(31))
 
 
-def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int,
+_DATA_ORDER = 1 << 40  # hash domain of the seedless data order (seeded bases are < 2^40)
+
+
+def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int | None,
                 salt: int) -> np.ndarray:
-    """A uniformly random permutation within every group (flat indices), seeded.
+    """A pseudo-random permutation within every group (flat indices), seeded or seedless.
 
     Sort by group id + U key, U a hash of (seed, salt, hypothesis key, copy, position in
     the group): within a group the order is that of i.i.d.-like uniform keys, i.e. a
     uniformly random permutation, independent of the data. Because U depends on the
     hypothesis' own key and the position only, a hypothesis gets the same order whatever
     other hypotheses are tested with it, and values appended at the end (failed-run
-    completions) leave the relative order of the others unchanged.
+    completions) leave the relative order of the others unchanged. ``seed`` None: a fixed
+    hash domain instead of a seed (the data order, module doc): the permutation is then a
+    fixed function of (hypothesis key, copy, group size), so applied to a sequence that is
+    already i.i.d. it leaves it i.i.d. whatever the hash.
     """
     sizes = np.asarray(sizes, np.int64)
     gid = np.repeat(np.arange(len(sizes)), sizes)
     pos = np.arange(int(sizes.sum()), dtype=np.int64) - np.repeat(
         np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
+    head = _DATA_ORDER if seed is None else (int(seed) & 0xFFFFFFFF) << 8
     with np.errstate(over="ignore"):
-        base = _mix64(np.array([(int(seed) & 0xFFFFFFFF) << 8 | salt], dtype=np.uint64))
+        base = _mix64(np.array([head | salt], dtype=np.uint64))
         hk = _mix64(base ^ np.asarray(keys, np.int64).astype(np.uint64))
         hk = _mix64(hk ^ (np.asarray(copy, np.int64).astype(np.uint64) << np.uint64(40)))
         u = _mix64(hk[gid] ^ pos.astype(np.uint64))
@@ -273,9 +312,11 @@ def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.nda
         return Ragged(np.tile(r.values, k),
                       np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
 
+    fp = samples.follow_pos
     t = HypothesisSamples(np.tile(samples.y_lo, k), np.tile(samples.y_up, k),
                           np.tile(samples.n, k), tile_r(samples.follow), tile_r(samples.twin),
-                          keys=np.tile(samples.hyp_keys, k))
+                          keys=np.tile(samples.hyp_keys, k),
+                          follow_pos=None if fp is None else tile_r(fp))
     return t, np.repeat(np.arange(k), len(samples))
 
 
@@ -292,16 +333,23 @@ def _checked(samples: HypothesisSamples, delta0: np.ndarray | float
 
 def ordered_sides(
     samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC,
-    orders: int = 1,
+    orders: int = 1, order: str = "seed",
 ) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
-    """(Y_lo, Y_up, twin) rescaled to [0, 1], in seeded random order, with their bets.
+    """(Y_lo, Y_up, twin) rescaled to [0, 1], in data or seeded random order, with their bets.
 
-    The observational sample is materialised here (followers, then n - n_follow fill
-    values) because every position carries its own bet; Y_lo and Y_up share the
-    order. The observational and twin orders are independent hashes of (seed, side,
-    hypothesis key, copy, position) (``_order_keys``), built in two threads, chunk by chunk
-    of hypotheses (cache-sized). ``orders`` K > 1: K independently ordered copies.
+    The observational sample is materialised here (``order`` "data" with
+    ``samples.follow_pos``: every entering trajectory at its stay-id position, followers'
+    values and n - n_follow fill values; otherwise followers, then fill values) because
+    every position carries its own bet; Y_lo and Y_up share the order. That sequence is
+    then permuted by a hash of (seed, side, hypothesis key, copy, position)
+    (``_order_keys``; ``order`` "data": no seed, module doc "Order"), built in two threads,
+    chunk by chunk of hypotheses (cache-sized). ``orders`` K > 1: K independently ordered
+    copies.
     """
+    if order not in ORDER_KINDS:
+        raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
+    use_pos = order == "data" and samples.follow_pos is not None
+    hseed = None if order == "data" else seed
     h, width, d0 = _checked(samples, delta0)
     copy = np.zeros(h, np.int64)
     if orders > 1:
@@ -321,13 +369,22 @@ def ordered_sides(
             o = offs[h0: h1 + 1] - offs[h0]
             lay = _layout(o)  # shared by Y_lo and Y_up
             gid, t = lay
-            is_f = t <= nf[h0:h1][gid]
-            fv = follow.values[follow.offsets[h0]: follow.offsets[h1]]
+            fsl = slice(follow.offsets[h0], follow.offsets[h1])
+            fv = follow.values[fsl]
             fg = np.repeat(np.arange(h1 - h0), nf[h0:h1])
+            if use_pos:  # each follower at its stay-id position among the entering ones
+                at = o[:-1][fg] + samples.follow_pos.values[fsl].astype(np.int64)
+                is_f = np.zeros(len(gid), dtype=bool)
+                is_f[at] = True
+                if is_f.sum() != len(at):
+                    raise ValueError("betting: two followers share a position (follow_pos)")
+            else:
+                is_f = t <= nf[h0:h1][gid]
+                at = is_f
             xf = np.zeros(len(gid))
-            xf[is_f] = (np.clip(fv, y_lo[h0:h1][fg], samples.y_up[h0:h1][fg])
-                        - y_lo[h0:h1][fg]) / width[h0:h1][fg]
-            perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], seed, 1)
+            xf[at] = (np.clip(fv, y_lo[h0:h1][fg], samples.y_up[h0:h1][fg])
+                      - y_lo[h0:h1][fg]) / width[h0:h1][fg]
+            perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 1)
             xf, fill = xf[perm], ~is_f[perm]
             sl = slice(offs[h0], offs[h1])
             x_lo[sl] = np.where(fill, 0.0, xf)
@@ -345,7 +402,7 @@ def ordered_sides(
             g = np.repeat(np.arange(h1 - h0), sizes[h0:h1])
             v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
                  - y_lo[h0:h1][g]) / width[h0:h1][g]
-            xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], seed, 2)]
+            xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)]
             lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c)
         return OrderedSide(xt, lt, twin.offsets)
 
@@ -481,6 +538,8 @@ def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
         y_lo=samples.y_lo[keep], y_up=samples.y_up[keep], n=samples.n[keep],
         follow=_ragged_subset(samples.follow, keep), twin=_ragged_subset(samples.twin, keep),
         keys=samples.hyp_keys[keep],
+        follow_pos=None if samples.follow_pos is None else _ragged_subset(samples.follow_pos,
+                                                                          keep),
     )
 
 
@@ -489,7 +548,7 @@ def default_tune_alpha(h: int) -> float:
     return 0.05 / (2 * max(int(h), 1))
 
 
-ORDERS = 16  # default K for plugin bets (seed-to-seed spread: docs/explanation/statistics.md)
+ORDERS = 1  # default K for plugin bets (K > 1 averages K orders' terminal capitals; docs)
 _CHUNK_ELEMENTS = 1 << 23  # copies (n + nhat) summed per chunk of hypotheses: bounds memory
 
 
@@ -497,11 +556,12 @@ _CHUNK_ELEMENTS = 1 << 23  # copies (n + nhat) summed per chunk of hypotheses: b
 class Bets:
     """How the capital is built: validated options of :func:`betting_test`."""
 
-    kind: str = "mixture"
-    orders: int = 1  # plugin: K seeded orders averaged
+    kind: str = "plugin"
+    orders: int = 1  # plugin: K orders averaged
     running_max: bool = False  # plugin with one order: max_t K_t (Ville) instead of K_n
     grid: int = MIX_GRID  # mixture: J constant bets
     ratio: float = MIX_RATIO
+    order: str = "data"  # plugin: "data" (seedless, module doc "Order") or "seed"
 
     @property
     def copies(self) -> int:
@@ -511,19 +571,21 @@ class Bets:
               c: float) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
         if self.kind == "mixture":
             return mixture_sides(samples, delta0, self.grid, self.ratio)
-        return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders)
+        return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
+                             order=self.order)
 
 
-def make_bets(bets: str = "mixture", orders: int | None = None,
+def make_bets(bets: str = "plugin", orders: int | None = None,
               running_max: bool | None = None, grid: int = MIX_GRID,
-              grid_ratio: float = MIX_RATIO, default_orders: int = ORDERS) -> Bets:
+              grid_ratio: float = MIX_RATIO, default_orders: int = ORDERS,
+              order: str | None = None) -> Bets:
     """Check the betting options together; one clear error for a combination that cannot be."""
     if bets not in BETS:
         raise ValueError(f"betting: bets must be one of {', '.join(BETS)}, got {bets!r}")
     if bets == "mixture":
-        if orders is not None or running_max:
-            raise ValueError("betting: orders and running_max apply to bets: plugin (the "
-                             "mixture is order-free and uses the terminal capital)")
+        if orders is not None or running_max or order is not None:
+            raise ValueError("betting: orders, order and running_max apply to bets: plugin "
+                             "(the mixture is order-free and uses the terminal capital)")
         _check_grid(grid, grid_ratio)
         return Bets("mixture", grid=int(grid), ratio=float(grid_ratio))
     k = default_orders if orders is None else int(orders)
@@ -532,8 +594,11 @@ def make_bets(bets: str = "mixture", orders: int | None = None,
     if running_max and k > 1:
         raise ValueError("betting: running_max needs orders = 1 (averaging over orders uses "
                          "the terminal capital)")
+    order = "data" if order is None else order
+    if order not in ORDER_KINDS:
+        raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
     return Bets("plugin", orders=k, running_max=(k == 1) if running_max is None
-                else bool(running_max))
+                else bool(running_max), order=order)
 
 
 def check_options(opts: dict) -> None:
@@ -543,6 +608,7 @@ def check_options(opts: dict) -> None:
 
     o.number(opts, "tune_alpha", lo=0, hi=1, lo_open=True, hi_open=True, allow_none=True)
     o.choice(opts, "bets", BETS)
+    o.choice(opts, "order", ORDER_KINDS)
     o.integer(opts, "grid", lo=1)
     o.number(opts, "grid_ratio", lo=1, lo_open=True)
     o.integer(opts, "orders", lo=1, allow_none=True)
@@ -550,15 +616,16 @@ def check_options(opts: dict) -> None:
     o.number(opts, "c", lo=0, hi=1, lo_open=True, hi_open=True, note="bet truncation")
     o.number(opts, "tol", lo=0, lo_open=True)
     o.integer(opts, "max_iter", lo=1)
-    make_bets(**{k: opts[k] for k in ("bets", "orders", "running_max", "grid", "grid_ratio")
-                 if k in opts})
+    make_bets(**{k: opts[k] for k in ("bets", "orders", "running_max", "grid", "grid_ratio",
+                                      "order") if k in opts})
 
 
 def betting_test(
     samples: HypothesisSamples,
     *,
     tune_alpha: float | None = None,
-    bets: str = "mixture",
+    bets: str = "plugin",
+    order: str | None = None,
     grid: int = MIX_GRID,
     grid_ratio: float = MIX_RATIO,
     seed: int = 0,
@@ -571,14 +638,15 @@ def betting_test(
     """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
 
     ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``bets``:
-    "mixture" (default: order-free grid mixture of ``grid`` constant bets spaced by
-    ``grid_ratio``; ``seed`` is not used) or "plugin" (WSR's predictable plug-in bets over
-    ``orders`` K seeded sample orders whose terminal capitals are averaged, default 16; K = 1:
-    one order, running maximum by default); ``tol``: accuracy of log K* (p's relative
-    accuracy), p is never understated. Hypotheses are processed in chunks (memory); a
-    hypothesis' orders depend on its key only, so chunking does not change any p-value.
+    "plugin" (default: WSR's predictable plug-in bets; ``order`` "data" (default) puts each
+    sample in its data order, no seed enters; "seed": a ``seed``-ed random order; ``orders``
+    K > 1 averages the terminal capitals of K orders; K = 1 (default): one order, running
+    maximum by default) or "mixture" (order-free grid mixture of ``grid`` constant bets
+    spaced by ``grid_ratio``; ``seed`` is not used); ``tol``: accuracy of log K* (p's
+    relative accuracy), p is never understated. Hypotheses are processed in chunks (memory);
+    a hypothesis' orders depend on its key only, so chunking does not change any p-value.
     """
-    how = make_bets(bets, orders, running_max, grid, grid_ratio)
+    how = make_bets(bets, orders, running_max, grid, grid_ratio, order=order)
     h = len(samples)
     p_lo, p_up = np.ones(h), np.ones(h)
     ok = (samples.n > 0) & (samples.nhat > 0)
@@ -627,22 +695,24 @@ def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: boo
 
 def betting_bounds(
     samples: HypothesisSamples, alpha: float | np.ndarray, *, tune_alpha: float | None = None,
-    bets: str = "mixture", grid: int = MIX_GRID, grid_ratio: float = MIX_RATIO, seed: int = 0,
+    bets: str = "plugin", grid: int = MIX_GRID, grid_ratio: float = MIX_RATIO, seed: int = 0,
     orders: int | None = None, running_max: bool | None = None, c: float = C_TRUNC,
+    order: str | None = None,
 ) -> dict[str, np.ndarray]:
     """One-sided (1 - alpha/2) bounds in outcome units, for the union rule at level alpha.
 
     ``alpha``: a scalar or one level per hypothesis.
     Keys: lower_lo, upper_up (observational), lower_twin, upper_twin. Same bets as
-    :func:`betting_test` with the same options (``bets: plugin`` defaults here to one order
-    with the running maximum, WSR's interval), so the rule on these bounds rejects at alpha
+    :func:`betting_test` with the same options (``bets: plugin``: one order with the running
+    maximum by default, WSR's interval), so the rule on these bounds rejects at alpha
     exactly when that p-value is <= alpha (up to the bisection's resolution).
     Requires n > 0 and nhat > 0 for every hypothesis.
     """
     if np.any(samples.n == 0) or np.any(samples.nhat == 0):
         raise ValueError("betting_bounds: every hypothesis needs n > 0 and nhat > 0")
     h = len(samples)
-    how = make_bets(bets, orders, running_max, grid, grid_ratio, default_orders=1)
+    how = make_bets(bets, orders, running_max, grid, grid_ratio, default_orders=1,
+                    order=order)
     rmax = how.running_max
     alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
     lo, up, tw = how.sides(samples, alpha0 / 2, seed, c)

@@ -67,7 +67,7 @@ def augment(samples: HypothesisSamples, k: np.ndarray, value: np.ndarray) -> Hyp
     ]
     return HypothesisSamples(
         y_lo=samples.y_lo, y_up=samples.y_up, n=samples.n, follow=samples.follow,
-        twin=Ragged.from_groups(groups), keys=samples.keys,
+        twin=Ragged.from_groups(groups), keys=samples.keys, follow_pos=samples.follow_pos,
     )  # fmt: skip
 
 

@@ -24,8 +24,8 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
     ),
     "betting": (
         "twinfalsify.inference.betting:betting_test",
-        ("tune_alpha", "bets", "grid", "grid_ratio", "orders", "running_max", "c", "tol",
-         "max_iter"),
+        ("tune_alpha", "bets", "order", "grid", "grid_ratio", "orders", "running_max", "c",
+         "tol", "max_iter"),
         True,
     ),
     "bernstein": ("twinfalsify.inference.bernstein:bernstein_test", (), False),

@@ -84,6 +84,11 @@ class HypothesisSamples:
     # keeps its seeded sample order whatever other hypotheses are tested with it (subsets,
     # failed-run completions). None: 0..H-1.
     keys: np.ndarray | None = None
+    # (H groups, aligned with ``follow``) each follower's position among its hypothesis'
+    # n entering trajectories, listed by stay id (``bounds.observational_side``): where the
+    # betting test's data order puts it. None: unknown (followers are then taken as listed
+    # first; the data order is then only a fixed pseudo-random one, betting module doc).
+    follow_pos: Ragged | None = None
 
     def __post_init__(self) -> None:
         h = len(self.y_lo)
@@ -93,6 +98,12 @@ class HypothesisSamples:
             raise ValueError("HypothesisSamples: keys must have one entry per hypothesis")
         if np.any(self.follow.sizes > self.n):
             raise ValueError("HypothesisSamples: more followers than entering trajectories")
+        if self.follow_pos is not None:
+            fp = self.follow_pos
+            if not np.array_equal(fp.sizes, self.follow.sizes) or np.any(
+                    (fp.values < 0) | (fp.values >= np.repeat(self.n, fp.sizes))):
+                raise ValueError("HypothesisSamples: follow_pos must give every follower a "
+                                 "position in 0..n-1 of its hypothesis")
 
     def __len__(self) -> int:
         return len(self.y_lo)
@@ -180,6 +191,7 @@ class HypothesisSamples:
             follow=self.follow,
             twin=self.twin,
             keys=self.keys,
+            follow_pos=self.follow_pos,
         )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:
@@ -191,4 +203,5 @@ class HypothesisSamples:
             follow=self.follow.take(index),
             twin=self.twin.take(index),
             keys=self.hyp_keys[index],
+            follow_pos=None if self.follow_pos is None else self.follow_pos.take(index),
         )
