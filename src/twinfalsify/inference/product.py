@@ -2,21 +2,42 @@
 
 The union rule (``betting``, ``sequential``) rejects H_lo: Q_twin >= Q_lo at level a when
 some m has G_lo(m) >= 2/a and K-_twin(m) >= 2/a: each side must clear the whole 2/a on
-its part of the gap. The product rule uses that the two samples are independent:
+its part of the gap. The product rule multiplies the two capitals:
 
     reject at level a  iff  inf_{m in [0, 1]} G_lo(m) K-_twin(m) >= 1/a,
     p = min(1, 1 / inf_m G_lo(m) K-_twin(m)).
 
-*Validity.* Under H_lo (Q_twin >= Q_lo), at m = Q_lo both factors are nulls: G_lo(Q_lo) is
-the terminal capital of a test martingale for "mean <= Q_lo" on the observational sample,
-an e-value (E <= 1), and K-_twin,t(Q_lo) is a test supermartingale for "mean >= Q_lo" on
-the twin runs (independent of the observational sample). Conditionally on the
-observational sample Ville's inequality gives P(exists t: K_t(Q_lo) >= 1/(a G)) <=
-min(1, a G), so P(exists t: G(Q_lo) K_t(Q_lo) >= 1/a) <= a E[G(Q_lo)] <= a, and the inf
-over m is at most the value at Q_lo: the p-value is valid at any stopping time, with the
-twin's running maximum per m. This is the "e-values multiply for independent data"
-argument (Vovk & Wang 2021, Ann. Stat. 49(3):1736-1754; Ramdas, Grünwald, Vovk & Shafer
-2023, Stat. Sci. 38(4):576-601). No union bound: each side sees the whole gap, and the
+*What its validity needs: the two samples independent.* Suppose the twin sample is
+independent of the observational one. Under H_lo (Q_twin >= Q_lo), at m = Q_lo both factors
+are nulls: G_lo(Q_lo) is the terminal capital of a test martingale for "mean <= Q_lo" on the
+observational sample, an e-value (E <= 1), and K-_twin,t(Q_lo) is a test supermartingale for
+"mean >= Q_lo" on the twin runs. Conditionally on the observational sample (which, by
+independence, leaves the twin's law unchanged) Ville's inequality gives P(exists t:
+K_t(Q_lo) >= 1/(a G)) <= min(1, a G), so P(exists t: G(Q_lo) K_t(Q_lo) >= 1/a) <=
+a E[G(Q_lo)] <= a, and the inf over m is at most the value at Q_lo: the p-value is valid at
+any stopping time ("e-values multiply for independent data": Vovk & Wang 2021, Ann. Stat.
+49(3):1736-1754; Ramdas, Grünwald, Vovk & Shafer 2023, Stat. Sci. 38(4):576-601).
+
+*As run, that premise is false, and the proof does not hold.* The workflow initialises the
+twin's runs with the X_0 of D patients, drawn without replacement: the same patients whose
+outcomes form the observational sample. Given the observational sample the twin's runs are no
+longer i.i.d. draws with mean Q_twin (their X_0 are D's, a finite population correlated with
+the observational outcomes), so the conditional Ville step fails. Conditioning on the X_0 of
+D does not repair it either: given them, the observational values are independent but not
+identically distributed (each has its own conditional mean given its X_0), so G_lo(Q_lo) is
+no longer a test martingale, and the twin's draws without replacement have a drifting
+conditional mean. The argument holds exactly when the twin's X_0 come from patients disjoint
+from the observational sample (e.g. a part of D set aside, at random, before any test; its
+patients then leave the observational sample, which costs that part of n). The union rule
+needs no independence (a union bound over two marginally valid bounds) and stays valid.
+
+Measured, null boundary (``benchmarks/bench_product_null.py``; X_0 shared vs disjoint, a twin
+whose response to X_0 mirrors the world's, the dependence that favours rejecting H_lo): see
+docs/explanation/sequential.md. Sharing X_0 raises the rejection rate several-fold; no rate
+above its level was seen, but none is excluded by a proof: ``combine: product`` is offered
+as an unproven, opt-in rule, not as a valid test.
+
+*Why it is tighter when it holds.* No union bound: each side sees the whole gap, and the
 required gap behaves like a two-sample test's, sqrt(2 log(1/a) (s_obs^2/n + s_twin^2/t)),
 instead of the sum of two one-sample widths at 2/a (docs/explanation/sequential.md, measured).
 

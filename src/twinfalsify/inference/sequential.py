@@ -267,7 +267,8 @@ class SequentialState:
     # opt-in curtailment (doc (d)): stop a side when the predictive probability that the
     # full budget rejects it early (at a*) is below this epsilon (0: off)
     curtail: float = 0.0
-    # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in)
+    # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in, unproven
+    # when the twin shares the observational sample's X_0, as the workflow runs it)
     combine: str = "union"
     # failed twin runs: "conservative" (worst case, module doc) or "drop" (left out)
     failed_runs: str = "conservative"
