@@ -3,6 +3,9 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 CORES ?= 2
+# the study `make report` reports on, and its results folder (the config's `study:` key)
+CONFIG ?= config/config.yaml
+STUDY = $(shell sed -n 's/^study: *\([A-Za-z0-9._-]*\).*/\1/p' $(CONFIG))
 STAMP := $(VENV)/.installed
 
 .PHONY: setup reproduce test lint report docs clean
@@ -22,6 +25,12 @@ reproduce: $(STAMP)
 ## Set up and run the test suite.
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+## Build the study of CONFIG (default: the default study) and its browsable report:
+## results/<study>/report.html, one self-contained file with every figure and caption.
+report: $(STAMP)
+	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG)
+	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG) --report results/$(STUDY)/report.html
 
 lint: $(STAMP)
 	$(BIN)/ruff check src scripts tests benchmarks

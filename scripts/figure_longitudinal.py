@@ -7,7 +7,7 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 import json  # noqa: E402
 
-from twinfalsify.figures import longitudinal, save_all  # noqa: E402
+from twinfalsify.figures import longitudinal, longitudinal_title, save_all  # noqa: E402
 from twinfalsify.io import log, run_rule, write_csv  # noqa: E402
 from twinfalsify.summary import (  # noqa: E402
     extend_to_horizon,
@@ -40,19 +40,22 @@ def main(sm):
         _key(r.outcome, r.kind, r.t, r.actions, r.bins): r.hyp_id
         for r in st.hyps.itertuples(index=False)
     }
-    rejected = set(st.results.loc[st.results["rejected"], "hyp_id"])
-    rej_t = [
-        int(r.t) for r in frame.itertuples(index=False)
-        if ids.get(_key(r.outcome, kind, r.t, r.actions, r.bins)) in rejected
-    ]  # fmt: skip
-    log.info("hypothesis %s; rejected at hours %s", hyp_id, rej_t)
-    write_csv(frame.assign(kind=kind, rejected=frame["t"].isin(rej_t)), sm.output.csv)
-    last = frame.iloc[-1]
-    state = f"rejected at t = {', '.join(map(str, rej_t))}" if rej_t else "not rejected"
-    title = (
-        f"twin {sm.wildcards.twin}: {last['outcome']} ({kind}), a = "
-        f"{'-'.join(map(str, last['actions']))}, B = {'-'.join(map(str, last['bins']))}\n{state}"
-    )
+    # per test method, the hours whose own hypothesis it rejected (the figure draws
+    # Hoeffding intervals; its title names which method rejected which hour)
+    path_ids = [ids.get(_key(r.outcome, kind, r.t, r.actions, r.bins))
+                for r in frame.itertuples(index=False)]  # fmt: skip
+    rej_hours = {}
+    for method, part in st.results.groupby("method", sort=False):
+        rejected = set(part.loc[part["rejected"], "hyp_id"])
+        rej_hours[method] = [int(t) for t, h in zip(frame["t"], path_ids, strict=True)
+                             if h in rejected]  # fmt: skip
+    log.info("hypothesis %s; rejected hours per method %s", hyp_id, rej_hours)
+    frame = frame.assign(kind=kind, **{
+        f"rejected_{m}": frame["t"].isin(hours) for m, hours in rej_hours.items()
+    })  # fmt: skip
+    write_csv(frame, sm.output.csv)
+    correction = str(st.results["correction"].iloc[0]) if len(st.results) else "holm"
+    title = longitudinal_title(sm.wildcards.twin, frame, kind, rej_hours, correction)
     save_all(longitudinal(frame, title=title), sm.output.png, sm.output.pdf)
 
 

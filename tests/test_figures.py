@@ -278,9 +278,71 @@ def test_pvalue_figures_mark_the_bootstrap_floor_and_keep_the_holm_line():
     for fig in (figures.pvalue_boxen(res, method="bootstrap"),
                 figures.pvalue_boxen_methods(res)):
         ax = fig.axes[0]
-        texts = [t.get_text() for t in ax.texts]
-        assert any("5 at p = 1e-06: all resamples separated" in t for t in texts), texts
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert any("5 at p = 1e-06: all resamples separated" in t for t in labels), labels
+        assert any(t.startswith("rejected after holm") for t in labels), labels
+        assert not ax.texts  # the note is a legend entry: nothing can hide under the legend
         ys = [ln.get_ydata()[0] for ln in ax.get_lines() if len(ln.get_ydata()) == 2]
         assert any(np.isclose(y, 6.0) for y in ys)  # Holm / floor line at -log10(1e-6)
         assert np.isfinite(ax.get_ylim()).all() and ax.get_ylim()[1] < 50
-        assert not fig.axes[1].texts  # H_up: nothing at the floor, no note
+        # the legend sits above every p-value drawn (headroom), not over the boxes
+        fig.canvas.draw()
+        box = ax.get_legend().get_window_extent().transformed(ax.transData.inverted())
+        assert box.y0 > -np.log10(res["p_value"].min())
+        assert fig.axes[1].get_legend() is None  # H_up: nothing rejected, nothing at the floor
+
+
+def _overlaps(fig, a, b) -> bool:
+    fig.canvas.draw()
+    return a.get_window_extent().overlaps(b.get_window_extent())
+
+
+def test_propensity_legend_is_outside_every_panel_and_titles_count(st):
+    two = pd.concat([st.results, st.results.assign(method="other")], ignore_index=True)
+    fig = figures.propensity_scatter(two)
+    assert all(ax.get_legend() is None for ax in fig.axes)
+    (leg,) = fig.legends
+    assert [t.get_text() for t in leg.get_texts()] == ["not rejected", "rejected, either side"]
+    for ax in fig.axes:
+        assert not _overlaps(fig, leg, ax), ax.get_title()
+        m, k = ax.get_title().split(":")[0].split(", ")
+        part = two[(two["method"] == m) & (two["kind"] == k) & (two["n"] > 0)]
+        per = part.groupby("hyp_id")["rejected"].any()
+        assert ax.get_title().endswith(f"{int(per.sum())} of {len(per)} rejected")
+
+
+def test_sensitivity_legend_names_every_outcome_line():
+    sweep = pd.DataFrame([(d, m, g, 10, max(0, 5 - int(10 * d)) + (g == "HR"), k)
+                          for d in (0, 0.2, 0.5) for m in ("a", "b") for g in ("HR", "Sodium")
+                          for k in ("causal", "manski")],
+                         columns=["delta", "method", "group", "n_hypotheses", "n_rejected",
+                                  "kind"])  # fmt: skip
+    fig = figures.sensitivity_lines(sweep)
+    (leg,) = fig.legends
+    entries = {t.get_text(): h for t, h in zip(leg.get_texts(), leg.legend_handles, strict=True)}
+    assert {"causal: total", "manski: total", "HR", "Sodium"} <= set(entries)
+    for ax in fig.axes:
+        assert not _overlaps(fig, leg, ax)
+        # every thin line has the colour of its outcome's legend entry
+        hr = [ln for ln in ax.get_lines() if list(ln.get_ydata()) == [6, 4, 1]]
+        assert hr and all(ln.get_color() == entries["HR"].get_color() for ln in hr)
+
+
+def test_longitudinal_title_names_the_intervals_and_each_methods_rejections():
+    frame = pd.DataFrame({"outcome": "Sodium", "t": [1, 2, 3, 4],
+                          "actions": [[0], [0, 0], [0, 0, 0], [0, 0, 0, 0]],
+                          "bins": [[3, 3], [3, 3, 3], [3] * 4, [3] * 5]})  # fmt: skip
+    title = figures.longitudinal_title(
+        "fitted", frame, "causal",
+        {"hoeffding": [1, 2], "bootstrap": [1, 2, 3, 4], "betting": [1, 2, 3, 4]})
+    head, line = title.split("\n")
+    assert head == "twin fitted: Sodium (causal), a = 0-0-0-0, B = 3-3-3-3-3"
+    assert line == ("Hoeffding intervals drawn; rejected (holm) at t = 1, 2 by hoeffding; "
+                    "t = 1, 2, 3, 4 by bootstrap, betting")
+    none = figures.longitudinal_title("oracle", frame, "causal", {"hoeffding": []})
+    assert none.endswith("Hoeffding intervals drawn; rejected by no method")
+    fig = figures.longitudinal(frame.assign(
+        q_lo_hat=1.0, q_up_hat=2.0, r_bound=0.1, q_twin_hat=0.5, r_twin=0.1, q_obs_hat=1.5,
+        r_obs=0.1, n=10, nhat=10), title=title)
+    assert "Hoeffding" in fig.axes[0].get_title()
+    assert any("Hoeffding" in t.get_text() for t in fig.axes[0].get_legend().get_texts())

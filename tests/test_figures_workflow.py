@@ -46,6 +46,21 @@ def test_every_figure_rule_gives_a_nonempty_image(study):
         _image_ok(r / "figures" / f"confounding.{ext}")
 
 
+@pytest.mark.skipif(not HAS_SWEEP, reason="no sensitivity sweep in this version")
+def test_sensitivity_rule_logs_its_progress_and_is_benchmarked(study):
+    _, _, cfg, r = study
+    deltas = (cfg.get("figures", {}).get("sensitivity", {}).get("deltas")
+              or [0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2])  # fmt: skip
+    for twin in cfg["twins"]:
+        lines = (r / "logs" / "twins" / twin / "figure_sensitivity.log").read_text().splitlines()
+        steps = [ln for ln in lines if "Delta = " in ln]
+        kinds = {ln.split(": Delta")[0].split()[-1] for ln in steps}
+        assert len(steps) == len(deltas) * len(kinds) and kinds, lines[-5:]
+        assert any("sensitivity sweep done in" in ln for ln in lines)
+        bench = r / "benchmarks" / "twins" / twin / "figure_sensitivity.tsv"
+        assert bench.is_file() and bench.read_text().startswith("s\t")
+
+
 def test_tables_match_the_results_they_summarise(study):
     _, _, cfg, r = study
     for twin in cfg["twins"]:

@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
 
 from twinfalsify.schema import OUTCOMES  # noqa: E402
 
@@ -57,8 +58,8 @@ def pvalue_boxen(
                     lw=1,
                     label=f"rejected after {part['correction'].iloc[0]}",
                 )
-                ax.legend(loc="upper right", fontsize=8)
             mark_floor(ax, part)
+            legend_with_headroom(ax)
         ax.set_xlabel("outcome")
         ax.set_ylabel(f"$-\\log_{{10}}$ {label}")
         ax.set_title(f"H_{side}: {label}")
@@ -74,15 +75,25 @@ def pvalue_boxen(
 def mark_floor(ax: plt.Axes, part: pd.DataFrame) -> None:
     """Mark p-values reported at a floor (bootstrap: every resample separated, so the true p is
     below the bootstrap's resolution and only known to be <= the floor): a dotted line at the
-    floor and a note with their count."""
+    floor whose legend entry gives their count (one legend box, so no note hides under it)."""
     if "p_floor" not in part or not part["p_floor"].any():
         return
     fl = part.loc[part["p_floor"].astype(bool), "p_value"]
     y = -np.log10(float(fl.max()))
-    ax.axhline(y, ls=":", color="0.4", lw=1)
-    ax.text(0.01, 0.99, f"{len(fl)} at p = {fl.max():.0e}: all resamples separated\n"
-            "(true p below the bootstrap's resolution)", transform=ax.transAxes, va="top",
-            ha="left", fontsize=7, color="0.3")
+    ax.axhline(y, ls=":", color="0.4", lw=1,
+               label=f"{len(fl)} at p = {fl.max():.0e}: all resamples separated\n"
+               "(true p below the bootstrap's resolution)")  # fmt: skip
+
+
+def legend_with_headroom(ax: plt.Axes, loc: str = "upper right", share: float = 0.32) -> None:
+    """Legend of the labelled lines in the top ``share`` of the panel, kept free of data by
+    raising the upper y limit (boxen plots reach the top of their data range)."""
+    handles, labels = ax.get_legend_handles_labels()
+    if not handles:
+        return
+    lo, hi = ax.get_ylim()
+    ax.set_ylim(lo, hi + (hi - lo) * share / (1 - share))
+    ax.legend(handles, labels, loc=loc, fontsize=7, framealpha=0.9)
 
 COLORS = {
     "bound": "#4c72b0",  # observational bounds [Q_lo, Q_up]
@@ -159,6 +170,26 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     return fig
+
+
+def longitudinal_title(twin: str, frame: pd.DataFrame, kind: str,
+                       rejected_hours: dict[str, list[int]], correction: str = "holm") -> str:
+    """Title of the bounds-over-time figure: the hypothesis, the intervals drawn (Hoeffding,
+    as ``longitudinal`` draws them) and, per test method, the hours t whose own hypothesis
+    that method rejected after ``correction``; methods with the same hours share a clause."""
+    last = frame.iloc[-1]
+    head = (f"twin {twin}: {last['outcome']} ({kind}), a = "
+            f"{'-'.join(str(int(a)) for a in last['actions'])}, "
+            f"B = {'-'.join(str(int(b)) for b in last['bins'])}")  # fmt: skip
+    groups: dict[tuple[int, ...], list[str]] = {}
+    for method, hours in rejected_hours.items():
+        groups.setdefault(tuple(sorted(hours)), []).append(method)
+    clauses = [f"t = {', '.join(map(str, hours))} by {', '.join(ms)}"
+               for hours, ms in sorted(groups.items(), key=lambda g: (len(g[0]), g[0]))
+               if hours]  # fmt: skip
+    state = (f"rejected ({correction}) at " + "; ".join(clauses)) if clauses else \
+        "rejected by no method"
+    return f"{head}\nHoeffding intervals drawn; {state}"
 
 
 # -- item 5: outcome histograms ----------------------------------------------------------------
@@ -263,17 +294,20 @@ def propensity_scatter(results: pd.DataFrame) -> plt.Figure:
                                              rej=("rejected", "any"))  # fmt: skip
             per = per[per["n"] > 0]
             for rej, col, lab in ((False, COLORS["kept"], "not rejected"),
-                                  (True, COLORS["rejected"], "rejected")):  # fmt: skip
+                                  (True, COLORS["rejected"], "rejected, either side")):  # fmt: skip
                 q = per[per["rej"] == rej]
                 ax.scatter(q["n"], q["p"], s=10 if not rej else 18, alpha=0.6, color=col,
-                           label=f"{lab} ({len(q)})", edgecolors="none")  # fmt: skip
+                           label=lab, edgecolors="none")  # fmt: skip
             ax.set_xscale("log")
             ax.set_ylim(-0.02, 1.02)
-            ax.set_title(f"{m}, {k}", fontsize=10)
+            ax.set_title(f"{m}, {k}: {int(per['rej'].sum())} of {len(per)} rejected", fontsize=10)
             ax.set_xlabel("n (test-set trajectories entering)")
             ax.set_ylabel("$P(A_{1:t} = a_{1:t} | X_{0:N} \\in B_{0:N})$")
-            ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
+    # one legend for every panel, above them: no panel's points can sit under it
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / size[1]))
+    fig.legend(handles, labels, loc="upper center", ncol=2, fontsize=8, frameon=False,
+               markerscale=1.5)  # fmt: skip
     return fig
 
 
@@ -292,21 +326,32 @@ def sensitivity_lines(sweep: pd.DataFrame) -> plt.Figure:
     methods = list(pd.unique(sweep["method"]))
     fig, axes = plt.subplots(1, len(methods), figsize=(5 * len(methods), 3.8), squeeze=False,
                              sharey=True)  # fmt: skip
-    palette = {"causal": COLORS["bound"], "manski": COLORS["twin"]}
+    groups = [g for g in OUTCOMES if g in set(sweep["group"])]
+    groups += sorted(set(sweep["group"]) - set(groups), key=str)
+    colours = dict(zip(groups, sns.color_palette("husl", len(groups)), strict=True))
+    styles = {"causal": "-", "manski": "--"}
     for ax, m in zip(axes[0], methods, strict=True):
         sub = sweep[sweep["method"] == m]
         for k, part in sub.groupby("kind"):
-            for _, g in part.groupby("group"):
+            ls = styles.get(k, ":")
+            for grp, g in part.groupby("group"):
                 g = g.sort_values("delta")
-                ax.plot(g["delta"], g["n_rejected"], color=palette.get(k, "k"), lw=0.6, alpha=0.35)
+                ax.plot(g["delta"], g["n_rejected"], color=colours[grp], ls=ls, lw=0.9,
+                        alpha=0.8)  # fmt: skip
             tot = part.groupby("delta")["n_rejected"].sum()
-            ax.plot(tot.index, tot.to_numpy(), "o-", color=palette.get(k, "k"), lw=2, ms=4,
-                    label=f"{k}: total")  # fmt: skip
+            ax.plot(tot.index, tot.to_numpy(), marker="o", ls=ls, color="k", lw=2, ms=4)
         ax.set_title(m)
         ax.set_xlabel(r"$\Delta$ ([y_lo, y_up] widened by factors $1 \mp \Delta/2$)")
-        ax.legend(fontsize=7)
     axes[0, 0].set_ylabel("rejected hypotheses")
-    fig.tight_layout()
+    # one legend for all panels, right of them: totals and kinds by line style, outcomes by
+    # colour (the thin lines)
+    kinds = [k for k in styles if k in set(sweep["kind"])]
+    handles = [Line2D([], [], color="k", lw=2, marker="o", ms=4, ls=styles[k],
+                      label=f"{k}: total") for k in kinds]  # fmt: skip
+    handles += [Line2D([], [], color=colours[g], lw=1.2, label=str(g)) for g in groups]
+    fig.tight_layout(rect=(0, 0, 1 - 1.6 / fig.get_size_inches()[0], 1))
+    fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False,
+               title="per outcome (thin)", title_fontsize=7)  # fmt: skip
     return fig
 
 
@@ -381,8 +426,8 @@ def pvalue_boxen_methods(
                     ax.axhline(-np.log10(rej["p_value"].max()), ls="--", color=COLORS["rejected"],
                                lw=1, label=f"rejected after {part['correction'].iloc[0]}"
                                f" ({len(rej)})")  # fmt: skip
-                    ax.legend(loc="upper right", fontsize=8)
                 mark_floor(ax, part)
+                legend_with_headroom(ax)
             ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
             ax.set_ylabel(f"$-\\log_{{10}}\\ p_{{{side}}}$ (dimensionless)")
             ax.set_title(f"{method}: $H_{{{side}}}$", fontsize=10)
