@@ -12,7 +12,7 @@ from twinfalsify.schema import OUTCOMES, validate_trajectories  # noqa: E402
 
 
 def main(sm):
-    cfg = json.loads(sm.params.design)
+    cfg = sm.params.design
     d0 = validate_trajectories(read_parquet(sm.input.d0, "D0"), source=sm.input.d0)
     d = validate_trajectories(read_parquet(sm.input.d, "D"), source=sm.input.d)
     outcomes = tuple(cfg.get("outcomes", OUTCOMES))

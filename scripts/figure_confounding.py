@@ -5,7 +5,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
-import json  # noqa: E402
 
 from twinfalsify.design import N_DOSE_BINS, ActionBins  # noqa: E402
 from twinfalsify.figures import confounding, save_all  # noqa: E402
@@ -17,10 +16,10 @@ from twinfalsify.summary import confounding_frame  # noqa: E402
 def main(sm):
     from twinfalsify.sources.synthetic import SyntheticWorld
 
-    source = json.loads(sm.params.source)
+    source = sm.params.source
     if source["kind"] != "synthetic":
         raise ContractError("figure_confounding: needs source.kind synthetic (the truth)")
-    opts = json.loads(sm.params.figures).get("confounding") or {}
+    opts = sm.params.figures.get("confounding") or {}
     outcome = opts.get("outcome", "MeanBP")
     world = SyntheticWorld.from_config(source.get("synthetic"))
     actions = ActionBins.from_json(read_json(sm.input.actions))

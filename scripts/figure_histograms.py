@@ -5,7 +5,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
-import json  # noqa: E402
 
 from twinfalsify.figures import outcome_histograms, save_all  # noqa: E402
 from twinfalsify.io import run_rule  # noqa: E402
@@ -14,8 +13,8 @@ from twinfalsify.summary import histogram_data, load_study_twin, pick_hypothesis
 
 def main(sm):
     st = load_study_twin(dict(sm.input.items()))
-    opts = json.loads(sm.params.figures).get("histograms") or {}
-    alpha = float(json.loads(sm.params.testing).get("alpha", 0.05))
+    opts = sm.params.figures.get("histograms") or {}
+    alpha = float(sm.params.testing.get("alpha", 0.05))
     ids = opts.get("hyp_ids")
     if not ids:  # one rejected and one non-rejected case
         first = pick_hypothesis(st.results, rejected=True, prefer_long=False,

@@ -5,7 +5,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
-import json  # noqa: E402
 
 from twinfalsify.figures import longitudinal, longitudinal_title, save_all  # noqa: E402
 from twinfalsify.io import log, run_rule, write_csv  # noqa: E402
@@ -23,8 +22,8 @@ def _key(outcome, kind, t, actions, bins) -> str:
 
 def main(sm):
     st = load_study_twin(dict(sm.input.items()))
-    opts = json.loads(sm.params.figures).get("longitudinal") or {}
-    testing = json.loads(sm.params.testing)
+    opts = sm.params.figures.get("longitudinal") or {}
+    testing = sm.params.testing
     hyp_id = opts.get("hyp_id")
     if hyp_id is None:
         hyp_id = pick_hypothesis(st.results, rejected=True, outcome=opts.get("outcome"),
@@ -32,7 +31,7 @@ def main(sm):
         hyp_id = extend_to_horizon(st.results, st.hyps, hyp_id)  # show t = 1..T
     frame = longitudinal_frame(
         st, int(hyp_id), alpha=float(testing.get("alpha", 0.05)),
-        quantiles=tuple(json.loads(sm.params.quantiles)),
+        quantiles=tuple(sm.params.quantiles),
     )  # fmt: skip
     # hours of the path that are themselves tested hypotheses, and which were rejected
     kind = st.hyps.loc[st.hyps["hyp_id"] == int(hyp_id), "kind"].iloc[0]

@@ -5,7 +5,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
-import json  # noqa: E402
 import time  # noqa: E402
 
 import pandas as pd  # noqa: E402
@@ -20,8 +19,8 @@ def main(sm):
     from twinfalsify.inference.sensitivity import sensitivity_sweep
 
     st = load_study_twin(dict(sm.input.items()))
-    testing = json.loads(sm.params.testing)
-    opts = json.loads(sm.params.figures).get("sensitivity") or {}
+    testing = sm.params.testing
+    opts = sm.params.figures.get("sensitivity") or {}
     deltas = [float(d) for d in opts.get("deltas", [0.0, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2])]
     methods = make_methods(testing["methods"], int(sm.params.seed))
     parts = []

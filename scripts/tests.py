@@ -23,7 +23,7 @@ def main(sm):
     nodes = load_nodes(read_parquet(sm.input.runs, "twin runs"), plan, x0)
     twin, n_failed = bounds.twin_side(hyps, nodes, states)
     samples = bounds.hypothesis_samples(hyps, obs, twin)
-    cfg = json.loads(sm.params.testing)
+    cfg = sm.params.testing
     results = run_tests(
         hyps,
         samples,

@@ -11,7 +11,7 @@ from twinfalsify.schema import STAY_ID, validate_trajectories  # noqa: E402
 
 
 def main(sm):
-    source = json.loads(sm.params.source)
+    source = sm.params.source
     if source["kind"] == "synthetic":
         from twinfalsify.sources.synthetic import generate
 

@@ -1,6 +1,5 @@
 """Rule twin_shard_adaptive: simulate one shard batch by batch, stopping decided hypotheses."""
 
-import json
 import sys
 from pathlib import Path
 
@@ -30,8 +29,8 @@ def main(sm):
     hyps, obs = bounds.read_observational_side(
         sm.input.hypotheses, sm.input.counts, sm.input.follow
     )
-    runs_cfg, testing = json.loads(sm.params.runs), json.loads(sm.params.testing)
-    spec = json.loads(sm.params.spec)
+    runs_cfg, testing = sm.params.runs, sm.params.testing
+    spec = sm.params.spec
     spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
     twin = make_twin(sm.wildcards.twin, spec, read_json(sm.input.context))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)

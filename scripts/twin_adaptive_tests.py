@@ -1,7 +1,6 @@
 """Rule tests_adaptive: merge adaptive shards, account for every run, Holm/BY on the
 anytime-valid p-values at the stopping times."""
 
-import json
 import sys
 from pathlib import Path
 
@@ -35,7 +34,7 @@ def main(sm):
         )
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     nodes = load_simulated(rows, plan, x0)
-    testing = json.loads(sm.params.testing)
+    testing = sm.params.testing
     results = adaptive_results(
         hyps, obs, nodes, StateBins.from_json(read_json(sm.input.bins)), decisions,
         alpha=float(testing.get("alpha", 0.05)), correction=testing.get("correction", "holm"),

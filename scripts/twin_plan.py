@@ -15,7 +15,7 @@ from twinfalsify.schema import STAY_ID, SUBJECT_ID  # noqa: E402
 def main(sm):
     d = read_parquet(sm.input.d, "D")
     hyps = read_parquet(sm.input.hypotheses, "hypotheses")
-    runs = json.loads(sm.params.runs)
+    runs = sm.params.runs
     subjects = (
         d.groupby(STAY_ID)[SUBJECT_ID].first().to_dict() if SUBJECT_ID in d else None
     )
@@ -37,7 +37,7 @@ def main(sm):
     write_json(
         # relative to the context's folder: the study folder may be moved or copied
         {
-            "source": json.loads(sm.params.source),
+            "source": sm.params.source,
             "d0": os.path.relpath(sm.input.d0, Path(sm.output.context).parent),
         },
         sm.output.context,

@@ -1,6 +1,5 @@
 """Rule twin_shard: simulate one shard of the prefix tree with one twin."""
 
-import json
 import sys
 from pathlib import Path
 
@@ -14,7 +13,7 @@ from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E4
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
-    spec = json.loads(sm.params.spec)
+    spec = sm.params.spec
     spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
     if "workers" in spec:
         # Snakemake gave this job sm.threads cores (fewer than asked when --cores is

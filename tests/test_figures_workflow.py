@@ -119,4 +119,8 @@ def test_report_includes_every_figure_with_captions(study):
                    "Study summary", "brake-pad"):  # fmt: skip
         assert phrase in html, phrase
     assert f"{study_dir}/summary.html" in html and f"{study_dir}/figures/confounding.png" in html
+    # job parameters read as written, not as escaped JSON (a config section is a params dict)
+    shown = re.findall(r'"params": "(.*?)"}', html)
+    assert any("'alpha': 0.05" in p for p in shown), shown[:3]
+    assert not any("\\" in p for p in shown), [p for p in shown if "\\" in p][:3]
     assert sum(n.endswith(".png") for n in zf.namelist()) >= len(FIGURES) * len(cfg["twins"]) + 1

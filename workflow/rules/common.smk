@@ -64,8 +64,14 @@ wildcard_constraints:
 
 
 def canon(section):
-    """Config section as canonical JSON: a params value whose comparison ignores key order."""
-    return json.dumps(section, sort_keys=True)
+    """Config section with its keys sorted at every level: a params value whose repr (what
+    Snakemake compares to decide a rerun) ignores key order. A plain dict, not a JSON string,
+    so the report shows it without escaped quotes; rule scripts read it as it is."""
+    if isinstance(section, dict):
+        return {k: canon(section[k]) for k in sorted(section)}
+    if isinstance(section, (list, tuple)):
+        return [canon(v) for v in section]
+    return section
 
 
 def twin_dir(twin="{twin}"):
