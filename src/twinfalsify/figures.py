@@ -351,7 +351,7 @@ def sensitivity_lines(sweep: pd.DataFrame) -> plt.Figure:
     handles += [Line2D([], [], color=colours[g], lw=1.2, label=str(g)) for g in groups]
     fig.tight_layout(rect=(0, 0, 1 - 1.6 / fig.get_size_inches()[0], 1))
     fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False,
-               title="per outcome (thin)", title_fontsize=7)  # fmt: skip
+               title="thick: total, thin: outcome", title_fontsize=7)  # fmt: skip
     return fig
 
 
