@@ -159,6 +159,10 @@ def table(paths: list[Path]) -> str:
             continue
         lines.append(f"| {label}, CPU s | " + " | ".join(f"{y:.1f}" for y in ys)
                      + f" | {fit(ys):.0f} |")
+    grouped = [sum(stage_cpu(r, names) for names in GROUPS.values()) for r in runs]
+    ys = [r["cpu_s"] - g for r, g in zip(runs, grouped, strict=True)]
+    lines.append("| the rest (opening files, stays, criteria, CONSORT), CPU s | "
+                 + " | ".join(f"{y:.1f}" for y in ys) + f" | {fit(ys):.0f} |")
     ys = [r["cpu_s"] for r in runs]
     lines.append("| **whole extraction, CPU s** | " + " | ".join(f"**{y:.1f}**" for y in ys)
                  + f" | **{fit(ys):.0f}** |")
