@@ -44,11 +44,14 @@ def test_served_builtin_twin_gives_the_in_process_results(tmp_path):
         "served": {"kind": "biased", "shift": {"HR": 25.0}, "protocol": True, "workers": 2,
                    "timeout_s": 30},
     }, runs_per_sequence=60)  # fmt: skip
-    run = _run(tmp_path, config, "--cores", "2")
+    # only what is compared: tables and figures (the sensitivity sweep above all) add minutes
+    out = tmp_path / "results" / "test" / "twins"
+    targets = [str((out / t / f).relative_to(tmp_path))
+               for t in ("local", "served") for f in ("runs.parquet", "results.parquet")]
+    run = _run(tmp_path, config, "--cores", "2", *targets)
     assert run.returncode == 0, run.stderr[-3000:]
     # the served twin's shard jobs were given both cores
     assert "threads: 2" in run.stderr
-    out = tmp_path / "results" / "test" / "twins"
     runs = [pd.read_parquet(out / t / "runs.parquet") for t in ("local", "served")]
     pd.testing.assert_frame_equal(*runs, check_exact=True)
     res = [pd.read_parquet(out / t / "results.parquet") for t in ("local", "served")]
@@ -62,8 +65,10 @@ def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_p
             "env": {"PYTHONPATH": str(ROOT / "src")}}
     config = _config(tmp_path, {"slow": spec}, runs_per_sequence=80, n_shards=3)
     shards = tmp_path / "results" / "test" / "twins" / "slow" / "shards"
-    proc = subprocess.Popen(_cmd(tmp_path, config, "--cores", "1"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True,
+    target = "results/test/twins/slow/runs.parquet"  # the twin stage: what is checked
+    proc = subprocess.Popen(_cmd(tmp_path, config, "--cores", "1", target),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True,
                             env={**os.environ, "MPLBACKEND": "Agg"})
     try:
         deadline = time.monotonic() + 300
@@ -83,12 +88,12 @@ def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_p
             proc.wait()
     assert len(done) < 3, "every shard finished before the kill: make the twin slower"
     assert _run(tmp_path, config, "--unlock").returncode == 0
-    dry = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete", "--dry-run")
+    dry = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete", "--dry-run", target)
     for name in done:
         # finished shards are not scheduled (they only appear as inputs of twin_runs)
         assert f"output: results/test/twins/slow/shards/{name}" not in dry.stdout + dry.stderr
     assert "rule twin_shard" in dry.stdout + dry.stderr  # the unfinished ones are
-    run = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete")
+    run = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete", target)
     assert run.returncode == 0, run.stderr[-3000:]
     for name, mtime in done.items():
         assert (shards / name).stat().st_mtime_ns == mtime
