@@ -180,13 +180,15 @@ STAGED = ("CHARTEVENTS", "LABEVENTS", "INPUTEVENTS_MV", "INPUTEVENTS_CV", "OUTPU
 def read_items() -> dict[str, tuple[int, ...]]:
     """Per item-filtered staged table, every ITEMID any extraction query can select: every
     ``itemid`` of the package data tables of that source (items.csv by ``source``; for
-    CHARTEVENTS also cultures.csv) and the intubated-verbal GCS items. A query reading an
-    ITEMID outside these would see no rows for it: add the item to a data table."""
+    CHARTEVENTS also cultures.csv and heights.csv) and the intubated-verbal GCS items. A
+    query reading an ITEMID outside these would see no rows for it: add the item to a data
+    table."""
     from .cohort import INTUBATED_VERBAL  # cohort imports this module at its top
 
     items = data_table("items.csv")
     chart = set(items.loc[items["source"] == "chartevents", "itemid"].astype(int))
     chart |= set(data_table("cultures.csv")["itemid"].astype(int))
+    chart |= set(data_table("heights.csv")["itemid"].astype(int))  # the weights' BMI check
     chart |= {int(i) for i, _ in INTUBATED_VERBAL}
     lab = set(items.loc[items["source"] == "labevents", "itemid"].astype(int))
     return {"CHARTEVENTS": tuple(sorted(chart)), "LABEVENTS": tuple(sorted(lab))}
