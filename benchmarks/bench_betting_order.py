@@ -9,7 +9,8 @@ Holm per kind) with each bets variant (``plugin``: plug-in bets in the data orde
 default; ``mixture``: the order-free grid mixture; ``plugin:K``: terminal capitals averaged
 over K data orders; a ``:seed`` suffix: seeded orders instead) for seeds 0..S-1 of the test
 (the study itself, hence the data, is fixed). Prints per twin and variant: Holm rejections
-per seed (min-max), causal / Manski under seed 0, decisions that flip across the seeds (a
+per seed (min-max), causal / Manski under seed 0 (and, for comparison, Holm over both kinds
+pooled in one family), decisions that flip across the seeds (a
 (hypothesis, side) rejected under some seeds but not others), the seed-to-seed p ratio
 max/min (median and 90th percentile over hypotheses with p < 1 under every seed) and the
 wall time of one test run.
@@ -32,6 +33,7 @@ from bench_adaptive import build, in_process  # noqa: E402
 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.falsify import make_methods, run_tests  # noqa: E402
+from twinfalsify.inference.multiple_testing import correct  # noqa: E402
 from twinfalsify.runs import plan as tp  # noqa: E402
 from twinfalsify.runs.registry import make_twin  # noqa: E402
 
@@ -48,9 +50,9 @@ def main() -> None:
     seed = int(cfg["seed"])
     testing = cfg["testing"]
     st = build(cfg, seed)
-    print("| twin | bets | rejections per seed | causal / Manski | flipped decisions | "
-          "p ratio median | p ratio 90th | s per run |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| twin | bets | rejections per seed | causal / Manski | pooled kinds | "
+          "flipped decisions | p ratio median | p ratio 90th | s per run |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name in args.twins or list(cfg["twins"]):
         twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
         runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
@@ -62,7 +64,7 @@ def main() -> None:
             kind, orders, order = (k.split(":") + ["", ""])[:3]
             opts = {"bets": kind, **({"orders": int(orders)} if orders else {}),
                     **({"order": order} if order else {})}
-            rej, ps, secs, by_kind = [], [], [], ""
+            rej, ps, secs, by_kind, pooled = [], [], [], "", 0
             for s in range(args.seeds):
                 t0 = time.monotonic()
                 res = run_tests(st.hyps, samples, nf,
@@ -75,6 +77,9 @@ def main() -> None:
                 if s == 0:
                     cnt = res.groupby("kind")["rejected"].sum()
                     by_kind = f"{cnt.get('causal', 0)} / {cnt.get('manski', 0)}"
+                    pooled = int(correct(res["p_value"].to_numpy(),
+                                         float(testing.get("alpha", 0.05)),
+                                         testing.get("correction", "holm")).sum())
                 ps.append(res["p_value"].to_numpy())
             rej, ps = np.array(rej), np.array(ps)
             flips = int((rej.any(axis=0) & ~rej.all(axis=0)).sum())
@@ -83,7 +88,7 @@ def main() -> None:
             med, q90 = ((f"{np.median(ratio):.3f}", f"{np.quantile(ratio, 0.9):.3f}")
                         if ok.any() else ("-", "-"))  # no p < 1 under every seed
             counts = rej.sum(axis=1)
-            print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {by_kind} | "
+            print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {by_kind} | {pooled} | "
                   f"{flips} of {rej.shape[1]} | "
                   f"{med} | {q90} | {np.mean(secs):.1f} |", flush=True)
 

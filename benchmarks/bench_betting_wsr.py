@@ -220,13 +220,17 @@ def main() -> None:
 
 
 def report(rows: list[dict], vs: list[str], reps: int, coverage_reps: int) -> None:
-    """The three tables and the worst ratios, from the per-cell rows."""
-    args = argparse.Namespace(reps=reps, coverage_reps=coverage_reps)
-    print(f"\nwidth / hedged WSR width (mean over {args.reps} replicates; c = {C_TRUNC})\n")
-    print("| distribution | n | alpha | WSR width | Hoeffding | " + " | ".join(vs) + " |")
-    print("|---|---|---|---|---|" + "---|" * len(vs))
+    """The three tables and the worst ratios, from the per-cell rows (each row may carry its
+    own replicate counts ``reps``, ``cov_reps``; else the run's)."""
     for r in rows:
-        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {r['wsr']:.4f} | "
+        r.setdefault("reps", reps)
+        r.setdefault("cov_reps", coverage_reps)
+    print(f"\nwidth / hedged WSR width (mean over the replicates; c = {C_TRUNC})\n")
+    print("| distribution | n | alpha | replicates | WSR width | Hoeffding | " + " | ".join(vs)
+          + " |")
+    print("|---|---|---|---|---|---|" + "---|" * len(vs))
+    for r in rows:
+        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {r['reps']} | {r['wsr']:.4f} | "
               f"{r['hoef'] / r['wsr']:.3f} | "
               + " | ".join(f"{r['ratio'][v]:.3f}" for v in vs) + " |")
     print("\nwidth / Hoeffding width (mean); in brackets: share of replicates where the "
@@ -238,17 +242,17 @@ def report(rows: list[dict], vs: list[str], reps: int, coverage_reps: int) -> No
         print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {q:.3f} | "
               + " | ".join(f"{r['ratio'][v] * q:.3f} ({r['wider_hoef'][v]:.0%})" for v in vs)
               + " |")
-    print(f"\ncoverage: misses (true mean outside the interval) over {args.reps} replicates; "
-          f"nominal alpha; last column: the default over {args.coverage_reps} more "
+    print("\ncoverage: misses (true mean outside the interval) over the width replicates; "
+          "nominal alpha; last column: the default over further replicates "
           "(95 % Clopper-Pearson upper bound)\n")
     names = ["wsr", "hoeffding", *vs]
-    print("| distribution | n | alpha | " + " | ".join(names) + " | plugin, more reps |")
-    print("|---|---|---|" + "---|" * (len(names) + 1))
+    print("| distribution | n | alpha | replicates | " + " | ".join(names)
+          + " | plugin, more reps |")
+    print("|---|---|---|---|" + "---|" * (len(names) + 1))
     for r in rows:
-        cm = r.get("cov_miss")
-        more = (f"{cm} / {args.coverage_reps} (<= {cp_upper(cm, args.coverage_reps):.2g})"
-                if cm is not None else "-")
-        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | "
+        cm, cr = r.get("cov_miss"), r["cov_reps"]
+        more = f"{cm} / {cr} (<= {cp_upper(cm, cr):.2g})" if cm is not None and cr else "-"
+        print(f"| {r['dist']} | {r['n']} | {r['alpha']:g} | {r['reps']} | "
               + " | ".join(str(r["miss"][v]) for v in names) + f" | {more} |")
     worst = {v: max(r["ratio"][v] for r in rows) for v in vs}
     over_h = {v: max(r["ratio"][v] * r["wsr"] / r["hoef"] for r in rows) for v in vs}
@@ -257,12 +261,16 @@ def report(rows: list[dict], vs: list[str], reps: int, coverage_reps: int) -> No
 
 
 def merge(paths: list[str]) -> None:
-    """Tables from the ``#row`` lines of runs split by ``--distributions`` (parallel jobs)."""
-    rows = [json.loads(line[5:]) for p in paths for line in open(p) if line.startswith("#row ")]
+    """Tables from the ``#row`` lines of runs split by ``--distributions`` / ``--ns``
+    (parallel jobs); each row keeps its own run's replicate counts."""
+    rows = []
+    for p in paths:
+        lines = open(p).read().splitlines()
+        a = json.loads(next(ln for ln in lines if ln.startswith("#args "))[6:])
+        rows += [{**json.loads(ln[5:]), "reps": a["reps"], "cov_reps": a["coverage_reps"]}
+                 for ln in lines if ln.startswith("#row ")]
     vs = [v for v in VARIANTS if v in rows[0]["ratio"]]
-    head = [line for line in open(paths[0]) if line.startswith("#args ")]
-    a = json.loads(head[0][6:])
-    report(rows, vs, a["reps"], a["coverage_reps"])
+    report(rows, vs, 0, 0)
 
 
 if __name__ == "__main__":
