@@ -269,6 +269,7 @@ def merge(paths: list[str]) -> None:
         a = json.loads(next(ln for ln in lines if ln.startswith("#args "))[6:])
         rows += [{**json.loads(ln[5:]), "reps": a["reps"], "cov_reps": a["coverage_reps"]}
                  for ln in lines if ln.startswith("#row ")]
+    rows.sort(key=lambda r: (list(DISTRIBUTIONS).index(r["dist"]), r["n"], -r["alpha"]))
     vs = [v for v in VARIANTS if v in rows[0]["ratio"]]
     report(rows, vs, 0, 0)
 
