@@ -1,6 +1,9 @@
 """Betting intervals, every variant, against hedged WSR and Hoeffding: widths and coverage.
 
     PYTHONPATH=src python benchmarks/bench_betting_wsr.py [--reps 1000] [--coverage-reps 10000]
+        [--ns 20 50 200 1000] [--distributions ...] [--variants ...]
+    PYTHONPATH=src python benchmarks/bench_betting_wsr.py --merge out1.txt out2.txt ...
+        (the tables of runs split by --ns / --distributions, e.g. parallel jobs)
 
 One run prints, for Bernoulli(1/2), Bernoulli(0.1), Beta(2,2) and Uniform at n = 20, 50, 200,
 1000 and alpha = 0.05, 1e-4 (two-sided (1 - alpha) intervals for the mean, alpha/2 per end,
