@@ -14,6 +14,12 @@ from conftest import run_snakemake as snakemake
 pytestmark = pytest.mark.slow
 
 
+# what the tests read: figures would add minutes and are checked elsewhere
+TWIN = "results/adaptive/twins/biased"
+TARGETS = (f"{TWIN}/results.parquet", f"{TWIN}/adaptive/summary.json",
+           f"{TWIN}/tables/rejections.csv")
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     work = tmp_path_factory.mktemp("adaptive_study")
@@ -24,7 +30,7 @@ def study(tmp_path_factory):
     cfg["twins"] = {"biased": {"kind": "biased", "shift": {"HR": 25.0}}}
     config = work / "adaptive.yaml"
     config.write_text(yaml.safe_dump(cfg))
-    run = snakemake(work, config, "--cores", "2")
+    run = snakemake(work, config, "--cores", "2", *TARGETS)
     assert run.returncode == 0, run.stderr[-3000:]
     return work, config
 
@@ -57,13 +63,13 @@ def test_adaptive_results_account_for_every_run(study):
 def test_adaptive_mode_resumes_per_shard(study):
     """An interrupted run (shard 1 and the merge missing) redoes shard 1 only."""
     work, config = study
-    dry = snakemake(work, config, "--cores", "2", "-n")
+    dry = snakemake(work, config, "--cores", "2", "-n", *TARGETS)
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
     twin = work / "results" / "adaptive" / "twins" / "biased"
     for name in ("1.parquet", "1.decisions.parquet", "1.json"):
         (twin / "adaptive" / "shards" / name).unlink()
     (twin / "results.parquet").unlink()
-    dry = snakemake(work, config, "--cores", "2", "-n")
+    dry = snakemake(work, config, "--cores", "2", "-n", *TARGETS)
     out = dry.stdout + dry.stderr
     assert dry.returncode == 0, out[-2000:]
     jobs = re.findall(r"^rule (\w+):\n(?:.*\n)*?\s+wildcards: ([^\n]*)", out, re.M)
