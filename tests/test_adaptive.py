@@ -272,3 +272,17 @@ def test_failed_runs_are_worst_case_in_the_shards_as_in_memory(study_and_twin):
     assert (cons.p_lo > drop.p_lo * 1.01).any() or (cons.p_up > drop.p_up * 1.01).any()
     n_rejected = {k: (o.rejected_lo | o.rejected_up).sum() for k, o in got.items()}
     assert n_rejected["conservative"] <= n_rejected["drop"]
+
+
+def test_product_rule_shard_warns_it_has_no_validity_proof(study_and_twin):
+    """combine: product multiplies capitals of samples that share X_0: the shard's log says
+    the rule is unproven there (the union rule's log does not)."""
+    study, twin = study_and_twin[:2]
+    small = build_study(1500, 11, d0_fraction=0.2, min_support=5, runs=4)
+    logs = {}
+    for combine in ("product", "union"):
+        logs[combine] = io.StringIO()
+        run_adaptive_shard(twin, small.plan, 0, small.x0, small.actions, small.hyps, small.obs,
+                           small.states, batch_size=2, combine=combine, log=logs[combine])
+    assert "WARNING: combine: product has no validity proof" in logs["product"].getvalue()
+    assert "WARNING" not in logs["union"].getvalue()
