@@ -417,14 +417,9 @@ def _check_filler() -> None:
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from twinfalsify.sources.mimic3 import hourly
-    from twinfalsify.sources.mimic3.tables import data_table
+    from twinfalsify.sources.mimic3.tables import data_table, read_items
 
-    items = hourly.item_map()
-    read = (set(items["itemid"]) | set(data_table("cultures.csv")["itemid"])
-            | set(data_table("fluids.csv")["itemid"])
-            | set(data_table("vasopressors.csv")["itemid"])
-            | set(data_table("urine.csv")["itemid"]) | {723, 223900})
+    read = set(read_items()["CHARTEVENTS"])  # every itemid of every data table
     clash = read & set(CHART_FILLER + LAB_FILLER + CV_INPUT_FILLER + MV_INPUT_FILLER
                        + OUTPUT_FILLER)
     if clash:

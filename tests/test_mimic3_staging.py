@@ -63,7 +63,14 @@ def test_stage_keeps_exactly_the_rows_read(tmp_path):
     ce.to_csv(d / "CHARTEVENTS.csv", index=False)
     con = connect(d)
     rows = stage(con, tmp_path)
-    items = set(read_items()["CHARTEVENTS"])
+    # every itemid of every package data table (a table added later included) is kept
+    data = Path(__file__).resolve().parents[1] / "src" / "twinfalsify" / "data" / "mimic3"
+    items = {723, 223900}  # intubated verbal GCS, listed in the code
+    for f in data.glob("*.csv"):
+        df = pd.read_csv(f, comment="#")
+        if "itemid" in df:
+            items |= set(pd.to_numeric(df["itemid"], errors="coerce").dropna().astype(int))
+    assert set(read_items()["CHARTEVENTS"]) == items
     want = int(ce["ITEMID"].astype(int).isin(items).sum())
     assert rows["CHARTEVENTS"] == want == len(ce) - 1
     staged = con.execute('SELECT * FROM "CHARTEVENTS" LIMIT 0').df().columns

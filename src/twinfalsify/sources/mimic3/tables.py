@@ -178,20 +178,23 @@ STAGED = ("CHARTEVENTS", "LABEVENTS", "INPUTEVENTS_MV", "INPUTEVENTS_CV", "OUTPU
 
 
 def read_items() -> dict[str, tuple[int, ...]]:
-    """Per item-filtered staged table, every ITEMID any extraction query can select: every
-    ``itemid`` of the package data tables of that source (items.csv by ``source``; for
-    CHARTEVENTS also cultures.csv and heights.csv) and the intubated-verbal GCS items. A
-    query reading an ITEMID outside these would see no rows for it: add the item to a data
-    table."""
+    """Per item-filtered staged table, every ITEMID an extraction query may select: every
+    ``itemid`` of every package data table (items.csv, cultures.csv, heights.csv, ...:
+    a data table added later is covered without a change here; items of another table's
+    source only make the staged copy a little larger) and the intubated-verbal GCS items,
+    the one item list written in the code. A query selecting an ITEMID outside these would
+    see no rows for it: items belong in a data table."""
     from .cohort import INTUBATED_VERBAL  # cohort imports this module at its top
 
-    items = data_table("items.csv")
-    chart = set(items.loc[items["source"] == "chartevents", "itemid"].astype(int))
-    chart |= set(data_table("cultures.csv")["itemid"].astype(int))
-    chart |= set(data_table("heights.csv")["itemid"].astype(int))  # the weights' BMI check
-    chart |= {int(i) for i, _ in INTUBATED_VERBAL}
-    lab = set(items.loc[items["source"] == "labevents", "itemid"].astype(int))
-    return {"CHARTEVENTS": tuple(sorted(chart)), "LABEVENTS": tuple(sorted(lab))}
+    ids: set[int] = {int(i) for i, _ in INTUBATED_VERBAL}
+    folder = resources.files("twinfalsify") / "data" / "mimic3"
+    for f in sorted(folder.iterdir(), key=lambda f: f.name):
+        if f.name.endswith(".csv"):
+            df = data_table(f.name)
+            if "itemid" in df.columns:
+                ids |= set(pd.to_numeric(df["itemid"], errors="coerce").dropna().astype(int))
+    items = tuple(sorted(ids))
+    return {"CHARTEVENTS": items, "LABEVENTS": items}
 
 
 def stage(con: duckdb.DuckDBPyConnection, into: Path) -> dict[str, int]:
