@@ -346,3 +346,4 @@ def test_longitudinal_title_names_the_intervals_and_each_methods_rejections():
         r_obs=0.1, n=10, nhat=10), title=title)
     assert "Hoeffding" in fig.axes[0].get_title()
     assert any("Hoeffding" in t.get_text() for t in fig.axes[0].get_legend().get_texts())
+    assert not _overlaps(fig, fig.axes[0].get_legend(), fig.axes[0])  # no interval hidden

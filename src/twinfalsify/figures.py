@@ -148,7 +148,7 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     apply_style()
     f = frame.sort_values("t")
     t = f["t"].to_numpy(float)
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(8.4, 4.2))
     ax.fill_between(t, f["q_lo_hat"] - f["r_bound"], f["q_up_hat"] + f["r_bound"],
                     color=COLORS["bound"], alpha=0.12, lw=0,
                     label="bounds with Hoeffding intervals")  # fmt: skip
@@ -167,7 +167,8 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     last = f.iloc[-1]
     default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
     ax.set_title(title or default, fontsize=10)
-    ax.legend(fontsize=7, loc="best")
+    # right of the axes: inside, "best" still lands on an interval when the bands fill the panel
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     return fig
 
