@@ -8,7 +8,8 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 from twinfalsify import design  # noqa: E402
 from twinfalsify.io import log, read_parquet, run_rule, write_csv, write_json, write_parquet  # noqa: E402
-from twinfalsify.schema import OUTCOMES, validate_trajectories  # noqa: E402
+from twinfalsify.schema import OUTCOMES, ContractError, validate_trajectories  # noqa: E402
+from twinfalsify.studyconfig import figure_ids_error  # noqa: E402
 
 
 def main(sm):
@@ -23,6 +24,9 @@ def main(sm):
         horizon=cfg.get("horizon"), sequences=cfg.get("sequences"),
     )
     log.info("hypotheses: %s", hyps.groupby("kind").size().to_dict())
+    problem = figure_ids_error(sm.config, hyps["hyp_id"])
+    if problem:  # a figure would fail at the end of the study: say so now
+        raise ContractError(problem)
     write_json(actions.to_json(), sm.output.actions)
     write_json(states.to_json(), sm.output.bins)
     write_parquet(hyps, sm.output.hypotheses)

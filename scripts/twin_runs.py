@@ -8,13 +8,15 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 import pandas as pd  # noqa: E402
 
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
-from twinfalsify.runs.plan import TwinPlan, status_summary  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, status_summary, twin_hellos  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
 
 
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
-    runs = pd.concat([read_parquet(p, "twin shard") for p in sm.input.shards], ignore_index=True)
+    shards = [read_parquet(p, "twin shard") for p in sm.input.shards]
+    hellos = twin_hellos([s.attrs.get("twin_hello") for s in shards])
+    runs = pd.concat(shards, ignore_index=True)
     expected = len(plan.nodes) * len(plan.x0_stay_ids)
     dup = runs.duplicated(["node", "init_stay_id"])
     if dup.any() or len(runs) != expected:
@@ -28,6 +30,7 @@ def main(sm):
         "rows": len(runs),
         "by_hour_and_status": status_summary(runs),
         "twin_hours": plan.hours(),
+        **hellos,
     }
     log.info("%s", summary)
     write_parquet(runs, sm.output.runs)

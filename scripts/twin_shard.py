@@ -30,6 +30,10 @@ def main(sm):
         len(runs),
         runs["status"].value_counts().to_dict() if len(runs) else {},
     )
+    hello = getattr(twin, "last_hello", None)
+    if hello:  # what the twin said it is: recorded with its runs (run_summary.json)
+        log.info("twin %s says it is %s", sm.wildcards.twin, hello)
+        runs.attrs["twin_hello"] = dict(hello)
     write_parquet(runs, sm.output[0])
 
 

@@ -92,22 +92,75 @@ def _graph_cached(src: str) -> dict[str, set[str]]:
     return graph(Path(src))
 
 
-def script_modules(script: str | Path, src: str | Path, extra: Iterable[str] = ()) -> set[str]:
-    """Library modules a rule script depends on: its imports' closure, and ``extra``'s."""
+def _excluded(name: str, exclude: Iterable[str]) -> bool:
+    return any(name == e or name.startswith(e + ".") for e in exclude)
+
+
+def script_modules(script: str | Path, src: str | Path, extra: Iterable[str] = (),
+                   exclude: Iterable[str] = ()) -> set[str]:
+    """Library modules a rule script depends on: its imports' closure, and ``extra``'s.
+
+    ``exclude``: modules (and their submodules) this config never runs although they are
+    imported, e.g. the MIMIC-III source in a synthetic study, or a test method it does not
+    use; the caller states why each is safe to leave out (workflow/rules/common.smk).
+    """
     g = _graph_cached(str(Path(src).resolve()))
     direct = imports_of("__script__", Path(script), set(g))
-    return closure([*direct, *extra], g)
+    exclude = tuple(exclude)
+    return {m for m in closure([*direct, *extra], g) if not _excluded(m, exclude)}
 
 
-def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] = ()) -> str:
+def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] = (),
+                     exclude: Iterable[str] = ()) -> str:
     """SHA-256 (16 hex digits) over the names and bytes of :func:`script_modules`.
 
     Only what Python executes counts: the fingerprint is of source text, so an edit to a
-    comment also changes it (cheap to compute, never misses a change).
+    comment also changes it (cheap to compute, never misses a change), and a file restored
+    to the same bytes (``git checkout``) keeps it: times are never compared.
     """
     src = Path(src).resolve()
     mods = modules(src)
     h = hashlib.sha256()
-    for name in sorted(script_modules(script, src, extra)):
+    for name in sorted(script_modules(script, src, extra, exclude)):
         h.update(name.encode() + b"\0" + mods[name].read_bytes() + b"\0")
     return h.hexdigest()[:16]
+
+
+# Modules a study never runs unless its config asks for them, although rule scripts import
+# them. A source's package and rule helper run only in the trajectories rule's branch for
+# that source kind (the synthetic source is also the oracle/biased twins' world: never left
+# out). A test method's module runs only when the method is in use: the registry binds
+# methods by name, and the other modules that import one (inference.failures) only compare
+# a bound method with it. The sequential (adaptive) test bets whatever the methods are.
+SOURCE_MODULES: dict[str, tuple[str, ...]] = {
+    "mimic3": ("twinfalsify.sources.mimic3", "twinfalsify.sources.mimic3_rule",
+               "twinfalsify.sources.checksums"),
+}
+METHOD_MODULES: dict[str, str] = {
+    "bootstrap": "twinfalsify.inference.bootstrap",
+    "betting": "twinfalsify.inference.betting",
+    "bernstein": "twinfalsify.inference.bernstein",
+    "hoeffding": "twinfalsify.inference.hoeffding",
+}
+NEVER_LEFT_OUT = {"twinfalsify.inference.hoeffding"}  # its radius draws the figures' bounds
+
+
+def code_scope(config: dict, all_methods: bool = False) -> tuple[list[str], list[str]]:
+    """(methods in use, modules to leave out) of a study config, for :func:`code_fingerprint`.
+
+    The first are the modules of ``testing.methods`` (bound by name, so not seen as imports:
+    a rule that tests gives them as ``extra``); ``all_methods``: every method counts as in
+    use (the calibration stage has its own list of methods). The second: the source packages
+    of other source kinds, and the modules of methods not in use (fixed mode only).
+    """
+    kind = (config.get("source") or {}).get("kind")
+    leave = [m for k, mods in SOURCE_MODULES.items() if k != kind for m in mods]
+    names = set(METHOD_MODULES) if all_methods else set(
+        (config.get("testing") or {}).get("methods") or {})
+    used = sorted(METHOD_MODULES[n] for n in names if n in METHOD_MODULES)
+    adaptive = (config.get("twin_runs") or {}).get("mode", "fixed") == "adaptive"
+    for name, mod in METHOD_MODULES.items():
+        if name in names or mod in NEVER_LEFT_OUT or (adaptive and name == "betting"):
+            continue
+        leave.append(mod)
+    return used, leave

@@ -8,10 +8,15 @@ from snakemake.utils import validate
 SRC = Path(workflow.basedir) / "src"
 sys.path.insert(0, str(SRC))
 from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
-from twinfalsify.provenance import code_fingerprint  # noqa: E402
+from twinfalsify.provenance import code_fingerprint, code_scope, script_modules  # noqa: E402
+from twinfalsify.runs.plan import shard_runtime_minutes  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
-from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E402
+from twinfalsify.studyconfig import (  # noqa: E402
+    figure_ids_error,
+    shard_count,
+    study_config_error,
+)
 
 
 # Everything that can be checked from the config alone is checked here, at parse time,
@@ -42,6 +47,24 @@ if _shard_warning:
 LOGS = f"{R}/logs"
 
 
+def _figure_ids_problem():
+    """Figure hyp_ids of the config against the study's hypotheses, once they exist."""
+    hyps = Path(f"{R}/design/hypotheses.parquet")
+    if not hyps.is_file() or not config.get("figures"):
+        return None
+    import pandas as pd
+
+    try:
+        ids = pd.read_parquet(hyps, columns=["hyp_id"])["hyp_id"]
+    except Exception:  # noqa: BLE001 - a damaged file: the design rule reruns and says so
+        return None
+    return figure_ids_error(config, ids)
+
+
+if _problem := _figure_ids_problem():
+    raise ValueError(f"invalid config: {_problem}")
+
+
 # a results folder that cannot be written stops the run now, not after the first rules
 if not getattr(workflow, "dryrun", False) and (_unwritable := unwritable(R)):
     raise ValueError(_unwritable)
@@ -51,11 +74,15 @@ def code(script, extra=()):
     """Fingerprint of the library modules ``scripts/<script>.py`` imports (transitively).
 
     A params value: Snakemake reruns a job whose params changed, so a change in library
-    code reruns exactly the rules whose scripts reach it (twinfalsify.provenance).
+    code reruns exactly the rules whose scripts reach it (twinfalsify.provenance), as this
+    config uses them: a rule that tests also depends on the methods in use (bound by name),
+    and no rule on another source kind's package or a method not in use (code_scope).
     """
-    return code_fingerprint(
-        Path(workflow.basedir) / "scripts" / f"{script}.py", SRC, extra
-    )
+    path = Path(workflow.basedir) / "scripts" / f"{script}.py"
+    used, leave_out = code_scope(config, all_methods=script.startswith("calibration"))
+    if "twinfalsify.inference.registry" in script_modules(path, SRC, extra):
+        extra = (*extra, *used)
+    return code_fingerprint(path, SRC, extra, leave_out)
 
 
 wildcard_constraints:
@@ -139,6 +166,24 @@ def served_modules(twin):
     return [w for w in words if w.startswith("twinfalsify.")]
 
 
+_COMMAND_CODE = {}
+
+
+def shard_code(twin):
+    """The twin_shard `code` param: library modules its script reaches (and the served
+    ones); for a `command` twin also the fingerprint of the files it runs (its script,
+    files its command names, its spec's `code:` list; contents only), so editing them
+    reruns exactly its shards and what follows (twinfalsify.runs.command)."""
+    fingerprint = code("twin_shard", served_modules(twin))
+    if config["twins"][twin]["kind"] != "command":
+        return fingerprint
+    if twin not in _COMMAND_CODE:  # once per parse, not once per shard job
+        from twinfalsify.runs.command import command_fingerprint
+
+        _COMMAND_CODE[twin] = command_fingerprint(config["twins"][twin], SRC)
+    return f"{fingerprint}+{_COMMAND_CODE[twin]}"
+
+
 def twin_spec(wildcards):
     return config["twins"][wildcards.twin]
 
@@ -158,19 +203,19 @@ def shard_mem_mb(wildcards, threads):
 
 
 def shard_runtime(wildcards, input, threads):
-    """Slurm time limit in minutes: twin-hours in this shard x seconds per hour / workers.
-
-    Twin-hours = X_0 count x the hours of the shard's leaf sequences (the prefix tree shares
-    prefixes, so this is an upper bound). Doubled for safety, at least 10 minutes.
-    """
-    plan = json.loads(Path(input.plan).read_text())
-    m = len(plan["x0_stay_ids"])
-    leaves = plan["shards"][int(wildcards.shard)]
-    hours = m * sum(len(str(leaf).split("-")) for leaf in leaves)
-    seconds = (
-        hours * SECONDS_PER_TWIN_HOUR[twin_spec(wildcards)["kind"]] / max(threads, 1)
+    """Slurm time limit in minutes (twinfalsify.runs.plan.shard_runtime_minutes): per run
+    of the shard, its hours x seconds per twin-hour of the twin's kind, capped for a
+    protocol/command twin by its timeout_s (the runner kills a run at that limit); summed,
+    over the workers, doubled for safety, at least 10 minutes."""
+    spec = twin_spec(wildcards)
+    served = spec["kind"] == "command" or spec.get("protocol")
+    return shard_runtime_minutes(
+        json.loads(Path(input.plan).read_text()),
+        int(wildcards.shard),
+        SECONDS_PER_TWIN_HOUR[spec["kind"]],
+        float(spec.get("timeout_s", 600.0)) if served else None,
+        threads,
     )
-    return max(10, int(2 * seconds / 60) + 1)
 
 
 def mimic3_data():

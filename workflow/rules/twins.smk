@@ -50,7 +50,7 @@ rule twin_shard:
     # from the config); a served or command twin's library modules are in its code
     params:
         spec=shard_spec,
-        code=lambda w: code("twin_shard", served_modules(w.twin)),
+        code=lambda w: shard_code(w.twin),
     script:
         "../../scripts/twin_shard.py"
 

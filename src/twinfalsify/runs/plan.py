@@ -121,6 +121,25 @@ def plan_twin_runs(
     )
 
 
+def shard_runtime_minutes(plan: dict, shard: int, seconds_per_hour: float,
+                          timeout_s: float | None, workers: int) -> int:
+    """Cluster time limit (minutes) for one twin shard job, from the plan.
+
+    Each leaf sequence of the shard is simulated for every planned X_0 (m runs of len(leaf)
+    hours; the prefix tree shares prefixes, so this is an upper bound). A run is budgeted
+    ``seconds_per_hour`` x its hours, but never more than ``timeout_s`` (a twin served over
+    the protocol: the runner kills a run at that limit, and retries are rare). The total
+    is spread over ``workers``, doubled for safety, and at least 10 minutes.
+    """
+    m = len(plan["x0_stay_ids"])
+    per_run = [len(str(leaf).split("-")) * float(seconds_per_hour)
+               for leaf in plan["shards"][int(shard)]]
+    if timeout_s is not None:
+        per_run = [min(s, float(timeout_s)) for s in per_run]
+    seconds = m * sum(per_run) / max(int(workers), 1)
+    return max(10, int(2 * seconds / 60) + 1)
+
+
 def x0_frame(d: pd.DataFrame, stay_ids: list[int]) -> pd.DataFrame:
     """Real t = 0 rows of the given stays, in that order."""
     first = d[d["t"] == 0].set_index(STAY_ID)
@@ -301,6 +320,20 @@ def load_nodes(runs: pd.DataFrame, plan: TwinPlan, x0: pd.DataFrame) -> TwinNode
     if missing:
         raise ContractError(f"twin runs: {missing} (node, X_0) row(s) missing from the shards")
     return TwinNodes(index=index, values=values, x0=x0[list(FEATURES)].to_numpy(float))
+
+
+def twin_hellos(hellos: list[dict | None]) -> dict:
+    """What the twin said it is, per shard (``{"twin": {name, version}}``, None entries:
+    in-process twins), for run_summary.json; a warning when shards disagree (a shard kept
+    from before the twin changed while others were rerun)."""
+    known = [h for h in hellos if h]
+    if not known:
+        return {}
+    distinct = {json.dumps(h, sort_keys=True) for h in known}
+    if len(distinct) == 1:
+        return {"twin": known[0]}
+    log.warning("twin runs come from different twin versions: %s", sorted(distinct))
+    return {"twin": {"per_shard": hellos}}
 
 
 def status_summary(runs: pd.DataFrame) -> dict:

@@ -53,6 +53,7 @@ class ProtocolTwin:
         self.batch_size = batch_size
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
         self._truncates: bool | None = None
+        self.last_hello: dict[str, Any] = {}  # name and version the twin last said hello with
 
     def hello(self) -> dict[str, Any]:
         """Start one worker, return its (validated) hello answer, shut it down."""
@@ -82,13 +83,17 @@ class ProtocolTwin:
         that advertises ``capabilities.truncate``; other twins simulate whole paths."""
         if continue_while is not None and not self.truncates:
             continue_while = None
+        hello: dict[str, Any] = {}
         try:
-            return simulate_via_protocol(
+            res = simulate_via_protocol(
                 self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
                 retries=self.retries, progress=self.progress, env=self.env,
                 batch_size=self.batch_size, fail_fast_runs=self.fail_fast_runs,
                 max_restarts=self.max_restarts, continue_while=continue_while,
-                check_range=True,
+                check_range=True, hello_out=hello,
             )
         except ContractError as exc:  # name the twin as the config does
             raise ContractError(f"twins.{self.name}: {exc}") from None
+        if hello:
+            self.last_hello = hello
+        return res

@@ -80,8 +80,9 @@ def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
 
     What can be known from the config alone, before any data exists: the kind, the
     features of ``shift``/``scale`` and doses of ``dose_effect`` (checked by the builtin
-    twin's own constructor, on a default world), a command for kind command, and a
-    synthetic ``source`` for kinds that simulate the synthetic world.
+    twin's own constructor, on a default world), a command for kind command that can start
+    (``runs.command.check_command``), and a synthetic ``source`` for kinds that simulate
+    the synthetic world.
     """
     kind = spec.get("kind")
     if kind not in KINDS:
@@ -105,6 +106,13 @@ def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
                             f"(this twin is kind {kind})")
     if kind == "command" and not spec.get("command"):
         raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
+    if kind == "command":
+        from twinfalsify.runs.command import check_command
+
+        check_command(name, spec, _SRC)
+    elif spec.get("code"):
+        raise ContractError(f"twins.{name}.code: only kind command takes code (this twin is "
+                            f"kind {kind}; its code is the library's, tracked already)")
 
 
 def make_twin(

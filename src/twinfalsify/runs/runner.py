@@ -362,9 +362,11 @@ class _Pool:
         max_restarts: int = DEFAULT_MAX_RESTARTS,
         continue_while: Sequence[list] | None = None,
         check_range: bool = False,
+        hello_out: dict | None = None,
     ) -> None:
         self.command, self.env = command, env
         self.check_range = check_range
+        self.hello_out = hello_out  # filled with the first hello's name and version
         # per run: box paths a truncating twin may stop by (runs.truncation), or None
         self.continue_while = continue_while
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
@@ -453,6 +455,8 @@ class _Pool:
             )
         worker.hello = hello
         with self.lock:
+            if self.hello_out is not None and not self.hello_out:
+                self.hello_out.update({k: hello[k] for k in ("name", "version") if k in hello})
             self.take = max(1, min(hello["capabilities"].get("batch", 1), self.batch_size))
         return worker
 
@@ -688,6 +692,7 @@ def simulate_via_protocol(
     max_restarts: int = DEFAULT_MAX_RESTARTS,
     continue_while: Sequence[list] | None = None,
     check_range: bool = False,
+    hello_out: dict | None = None,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -721,7 +726,8 @@ def simulate_via_protocol(
     range (``schema.mark_implausible``) as ``implausible``, a failure, in the progress line
     and for the breaker, as it is when a study stores the runs (``runs.plan.plausible``,
     which marks the stored status; the SimResult returned here is the twin's answer).
-    ``ProtocolTwin``, what a study uses, turns it on.
+    ``ProtocolTwin``, what a study uses, turns it on. hello_out: a dict this call fills
+    with the ``name`` and ``version`` of the first worker's hello (recorded with the runs).
 
     Each worker gets TMPDIR = a folder of this call, removed when it returns, so
     temporary files of workers that had to be killed do not outlive it.
@@ -758,7 +764,7 @@ def simulate_via_protocol(
     full_env = {**base_env, "TMPDIR": scratch}
     pool = _Pool(cmd, full_env, x0_values, doses, seeds, hours, timeout_s, retries, features,
                  int(batch_size), int(fail_fast_runs), int(max_restarts), continue_while,
-                 bool(check_range))
+                 bool(check_range), hello_out)
     groups = plan_groups(seeds, doses)
     pool.tasks.extend(groups)
     n_threads = min(workers, len(groups))

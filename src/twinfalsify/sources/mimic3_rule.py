@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -14,17 +15,19 @@ from twinfalsify.schema import ContractError
 
 def data_params(cfg: dict[str, Any] | None) -> str:
     """The ``trajectories`` rule's data parameter for a mimic3 source: the resolved MIMIC-III
-    folder (config path or $TWINFALSIFY_MIMIC3_DIR) and a fingerprint of its files' names,
-    sizes and mtimes, as JSON. Another folder, or a changed file, changes it, and Snakemake
-    reruns the extraction. An unresolvable folder gives a fixed string: the rule itself then
-    fails with the one-line error."""
-    from twinfalsify.sources.mimic3.tables import data_fingerprint, resolve_mimic3_dir
+    folder (config path or $TWINFALSIFY_MIMIC3_DIR) and a fingerprint of the names, sizes
+    and mtimes of the files the extraction reads (``sources.checksums.read_fingerprint``),
+    as JSON. Another folder, or a changed table, changes it, and Snakemake reruns the
+    extraction; another file in the folder does not. An unresolvable folder (or two files
+    for one table) gives a fixed string: the rule itself then fails with the one-line error."""
+    from twinfalsify.sources.checksums import read_fingerprint
+    from twinfalsify.sources.mimic3.tables import resolve_mimic3_dir
 
     try:
         folder = resolve_mimic3_dir((cfg or {}).get("path"))
+        return json.dumps(read_fingerprint(folder), sort_keys=True)
     except ContractError:
         return "unresolved"
-    return json.dumps(data_fingerprint(folder), sort_keys=True)
 
 
 def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
@@ -35,12 +38,18 @@ def extract_for_study(cfg: dict[str, Any], out_dir: Path) -> pd.DataFrame:
     cohort/consort.csv, cohort/missingness.csv,
     cohort/anchors.csv, cohort/stays.csv (one audit row per ICU stay) and
     cohort/options.json next to the trajectories."""
+    from twinfalsify.sources.checksums import verify
     from twinfalsify.sources.mimic3 import extract_mimic3, resolve_mimic3_dir
     from twinfalsify.sources.mimic3.cohort import ANCHOR_WINDOW_H
     from twinfalsify.sources.mimic3.options import options_from_config
     from twinfalsify.sources.mimic3.tables import data_fingerprint
 
     folder = resolve_mimic3_dir(cfg.get("path"))
+    # two files for one table: an error naming both; files that differ from PhysioNet's
+    # published checksums: one warning each (hashed once per data fingerprint)
+    for warning in verify(folder, cfg.get("checksums"), out_dir / "cohort" / "checksums.json"):
+        log.warning("%s", warning)
+        print(f"WARNING: {warning}", file=sys.stderr, flush=True)
     anchor = cfg.get("anchor") or "first_vitals"
     window = int(cfg.get("anchor_window_h") or ANCHOR_WINDOW_H)
     opts = options_from_config(cfg)

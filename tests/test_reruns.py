@@ -1,0 +1,148 @@
+"""No stale result, no needless rerun: `snakemake -n` on a finished study with a command twin.
+
+One small synthetic study (Hoeffding only) with a builtin twin and a ``kind: command`` twin
+(the fault-injection twin, run as a script named in its command) that can never initialise
+the first X_0 its shards schedule, with ``fail_fast_runs: 3``:
+
+- the study finishes; that patient's runs are recorded ``init_failed``, every other run ok;
+- editing the command twin's script reruns exactly its shards and what follows (none of the
+  builtin twin's jobs); the same bytes written back rerun nothing;
+- an edit of the MIMIC-III source package, of an unused test method (betting.py), or a rule
+  script rewritten with the same bytes rerun nothing; an edit of the method in use
+  (hoeffding.py) still reruns the tests.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+import yaml
+from fakes import FAULTY_TWIN
+from test_bad_inputs import ROOT
+
+pytestmark = pytest.mark.slow
+
+
+def _snakemake(repo, work, config, *args, timeout=900):
+    return subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "--cores", "2", *args],
+        capture_output=True, text=True, timeout=timeout,
+        env={**os.environ, "PYTHONPATH": str(repo / "src"), "MPLBACKEND": "Agg"})
+
+
+def dry_run(repo, work, config) -> dict[str, list[str]]:
+    """{rule: [output of each job]} that `snakemake -n` would run."""
+    done = _snakemake(repo, work, config, "-n", timeout=300)
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    jobs: dict[str, list[str]] = {}
+    for m in re.finditer(r"^ *(?:local)?rule (\w+):\n((?: +.*\n)*)", out, re.M):
+        outputs = re.search(r"output: (.*)", m.group(2))
+        jobs.setdefault(m.group(1), []).append(outputs.group(1) if outputs else "")
+    return jobs
+
+
+def n_jobs(jobs: dict[str, list[str]]) -> int:
+    return sum(len(v) for v in jobs.values())
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """A finished study (repo copy, work folder, config) with the command twin 'ext'."""
+    from twinfalsify.runs.plan import TwinPlan
+
+    tmp = tmp_path_factory.mktemp("reruns")
+    repo = tmp / "repo"
+    repo.mkdir()
+    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+        src, dst = ROOT / part, repo / part
+        if src.is_dir():
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
+    work = tmp / "work"
+    (work / "twin").mkdir(parents=True)
+    shutil.copy(FAULTY_TWIN[1], work / "twin" / "faulty_twin.py")
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["twin_runs"].update(runs_per_sequence=60, n_shards=2)
+    config = tmp / "study.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    done = _snakemake(repo, work, config, f"results/{cfg['study']}/twin_plan.json")
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    plan = TwinPlan.from_json(yaml.safe_load(
+        (work / "results" / cfg["study"] / "twin_plan.json").read_text()))
+    seeds = plan.run_seeds()
+    first = int(seeds.min())  # every shard's runs come grouped by X_0, lowest seed first
+    patient = plan.x0_stay_ids[int(seeds.argmin())]
+    cfg["twins"]["ext"] = {"kind": "command",
+                           "command": f"python twin/faulty_twin.py --mode=init_failed:{first}",
+                           "workers": 1, "timeout_s": 30, "fail_fast_runs": 3}
+    config.write_text(yaml.safe_dump(cfg))
+    done = _snakemake(repo, work, config)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    return repo, work, config, cfg, patient
+
+
+def test_a_twin_failing_one_patient_finishes_its_study(study):
+    repo, work, config, cfg, patient = study
+    runs = pd.read_parquet(work / "results" / cfg["study"] / "twins" / "ext" / "runs.parquet")
+    mine = runs["init_stay_id"] == patient
+    assert mine.any() and (runs.loc[mine, "status"] == "init_failed").all()
+    assert (runs.loc[~mine, "status"] == "ok").all()
+    assert (work / "results" / cfg["study"] / "twins" / "ext" / "results.parquet").exists()
+    summary = yaml.safe_load(
+        (work / "results" / cfg["study"] / "twins" / "ext" / "run_summary.json").read_text())
+    assert summary["twin"] == {"name": "faulty", "version": "1"}  # what its hello said
+
+
+def test_editing_a_command_twins_script_reruns_exactly_its_shards(study):
+    repo, work, config, cfg, _ = study
+    assert dry_run(repo, work, config) == {}
+    script = work / "twin" / "faulty_twin.py"
+    text = script.read_text()
+    script.write_text(text + "\n# a fix\n")
+    jobs = dry_run(repo, work, config)
+    assert len(jobs["twin_shard"]) == cfg["twin_runs"]["n_shards"]
+    outputs = [o for outs in jobs.values() for o in outs]
+    assert all("/twins/ext/" in o for o in outputs), outputs  # nothing of the oracle/biased
+    for rule in ("trajectories", "split", "design", "twin_plan"):
+        assert rule not in jobs
+    script.write_text(text)  # the same bytes again, a newer time: nothing to do
+    assert dry_run(repo, work, config) == {}
+
+
+@pytest.mark.parametrize(("path", "reruns"), [
+    ("src/twinfalsify/sources/mimic3/tables.py", False),  # a synthetic study
+    ("src/twinfalsify/inference/betting.py", False),  # Hoeffding only
+    ("src/twinfalsify/inference/bernstein.py", False),
+    ("src/twinfalsify/inference/hoeffding.py", True),  # the method in use
+])
+def test_library_edits_rerun_what_this_config_uses(study, path, reruns):
+    repo, work, config, cfg, _ = study
+    f = repo / path
+    text = f.read_text()
+    f.write_text(text + "\n# an edit\n")
+    try:
+        jobs = dry_run(repo, work, config)
+    finally:
+        f.write_text(text)
+    assert bool(jobs) == reruns, jobs
+    if reruns:
+        assert "tests" in jobs and "twin_shard" not in jobs and "trajectories" not in jobs
+
+
+def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
+    repo, work, config, cfg, _ = study
+    script = repo / "scripts" / "tests.py"
+    text = script.read_bytes()
+    script.unlink()
+    script.write_bytes(text)  # as `git checkout` does: same bytes, new file, new time
+    os.utime(script)
+    assert dry_run(repo, work, config) == {}
