@@ -20,7 +20,7 @@ setup: $(STAMP)
 
 ## Set up and run the default study (synthetic world, builtin twins).
 reproduce: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES)
+	$(BIN)/snakemake --cores $(CORES) --rerun-triggers mtime params input
 
 ## Set up and run the test suite.
 test: $(STAMP)

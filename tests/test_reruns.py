@@ -7,9 +7,10 @@ the first X_0 its shards schedule, with ``fail_fast_runs: 3``:
 - the study finishes; that patient's runs are recorded ``init_failed``, every other run ok;
 - editing the command twin's script reruns exactly its shards and what follows (none of the
   builtin twin's jobs); the same bytes written back rerun nothing;
-- an edit of the MIMIC-III source package, of an unused test method (betting.py), or a rule
-  script rewritten with the same bytes rerun nothing; an edit of the method in use
-  (hoeffding.py) still reruns the tests.
+- an edit of the MIMIC-III source package or of an unused test method (betting.py) reruns
+  nothing; an edit of the method in use (hoeffding.py) still reruns the tests;
+- a rule script rewritten with the same bytes reruns nothing under ``--rerun-triggers mtime
+  params input`` (the profiles' and make's setting); new bytes rerun its rule.
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ def _snakemake(repo, work, config, *args, timeout=900):
         env={**os.environ, "PYTHONPATH": str(repo / "src"), "MPLBACKEND": "Agg"})
 
 
-def dry_run(repo, work, config) -> dict[str, list[str]]:
+def dry_run(repo, work, config, *args: str) -> dict[str, list[str]]:
     """{rule: [output of each job]} that `snakemake -n` would run."""
-    done = _snakemake(repo, work, config, "-n", timeout=300)
+    done = _snakemake(repo, work, config, "-n", *args, timeout=300)
     out = done.stdout + done.stderr
     assert done.returncode == 0, out[-3000:]
     jobs: dict[str, list[str]] = {}
@@ -111,7 +112,10 @@ def test_editing_a_command_twins_script_reruns_exactly_its_shards(study):
     jobs = dry_run(repo, work, config)
     assert len(jobs["twin_shard"]) == cfg["twin_runs"]["n_shards"]
     outputs = [o for outs in jobs.values() for o in outs]
-    assert all("/twins/ext/" in o for o in outputs), outputs  # nothing of the oracle/biased
+    # nothing of the builtin twins; outside the twin's folder only the study summary
+    assert not [o for o in outputs if "/twins/" in o and "/twins/ext/" not in o], outputs
+    assert {r for r, outs in jobs.items() if any("/twins/ext/" not in o for o in outs)} \
+        <= {"summary", "all"}, jobs
     for rule in ("trajectories", "split", "design", "twin_plan"):
         assert rule not in jobs
     script.write_text(text)  # the same bytes again, a newer time: nothing to do
@@ -138,11 +142,24 @@ def test_library_edits_rerun_what_this_config_uses(study, path, reruns):
         assert "tests" in jobs and "twin_shard" not in jobs and "trajectories" not in jobs
 
 
+CONTENT_ONLY = ("--rerun-triggers", "mtime", "params", "input")  # as the profiles and make
+
+
 def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
+    """Snakemake's own code trigger compares the script's time with its outputs': without it
+    (CONTENT_ONLY) the code param, which holds the script's bytes, decides."""
     repo, work, config, cfg, _ = study
     script = repo / "scripts" / "tests.py"
-    text = script.read_bytes()
+    text, st = script.read_bytes(), script.stat()
     script.unlink()
     script.write_bytes(text)  # as `git checkout` does: same bytes, new file, new time
-    os.utime(script)
+    try:
+        assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
+        assert "tests" in dry_run(repo, work, config)  # Snakemake's default: by time
+        script.write_bytes(text + b"\n# an edit\n")  # new bytes: the rule and what follows
+        jobs = dry_run(repo, work, config, *CONTENT_ONLY)
+        assert "tests" in jobs and "twin_shard" not in jobs and "design" not in jobs, jobs
+    finally:
+        script.write_bytes(text)
+        os.utime(script, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert dry_run(repo, work, config) == {}

@@ -4,7 +4,11 @@ One parser serves two uses: tests/test_layout.py checks the graph (no cycle, no 
 import), and the workflow (common.smk) gives every rule a ``code`` param = the fingerprint
 of the library modules its script imports, directly or transitively. Snakemake reruns a
 job whose params changed, so a fix in ``bounds.py`` reruns exactly the rules whose scripts
-reach ``bounds.py`` and nothing else (Snakemake already watches the script file itself).
+reach ``bounds.py`` and nothing else. The script's own bytes are in it too: Snakemake's own
+"code" trigger compares a script's modification time with its outputs', so a script
+restored with the same bytes (``git checkout``) reruns its rule under it; with
+``--rerun-triggers mtime params input`` (the workflow profiles, ``make``) this fingerprint
+alone decides, by content.
 
 Every ``import`` counts, including those inside functions (a lazy import is still a
 dependency). A module a script only starts as a subprocess by name (``python -m
@@ -112,7 +116,8 @@ def script_modules(script: str | Path, src: str | Path, extra: Iterable[str] = (
 
 def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] = (),
                      exclude: Iterable[str] = ()) -> str:
-    """SHA-256 (16 hex digits) over the names and bytes of :func:`script_modules`.
+    """SHA-256 (16 hex digits) over the script's bytes and the names and bytes of
+    :func:`script_modules`.
 
     Only what Python executes counts: the fingerprint is of source text, so an edit to a
     comment also changes it (cheap to compute, never misses a change), and a file restored
@@ -121,6 +126,7 @@ def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] =
     src = Path(src).resolve()
     mods = modules(src)
     h = hashlib.sha256()
+    h.update(b"__script__\0" + Path(script).read_bytes() + b"\0")  # the script itself
     for name in sorted(script_modules(script, src, extra, exclude)):
         h.update(name.encode() + b"\0" + mods[name].read_bytes() + b"\0")
     return h.hexdigest()[:16]
