@@ -7,9 +7,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify import design  # noqa: E402
+from twinfalsify.figure_ids import figure_ids_error  # noqa: E402
 from twinfalsify.io import log, read_parquet, run_rule, write_csv, write_json, write_parquet  # noqa: E402
 from twinfalsify.schema import OUTCOMES, ContractError, validate_trajectories  # noqa: E402
-from twinfalsify.studyconfig import figure_ids_error  # noqa: E402
 
 
 def main(sm):

@@ -13,8 +13,8 @@ import yaml
 from slurm.runs import run
 from test_bad_inputs import BASE_CONFIG
 
+from twinfalsify.figure_ids import figure_ids_error
 from twinfalsify.runs.plan import shard_runtime_minutes
-from twinfalsify.studyconfig import figure_ids_error
 
 
 def test_figure_ids_error_names_key_ids_and_range():

@@ -141,6 +141,7 @@ def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] =
 SOURCE_MODULES: dict[str, tuple[str, ...]] = {
     "mimic3": ("twinfalsify.sources.mimic3", "twinfalsify.sources.mimic3_rule",
                "twinfalsify.sources.checksums"),
+    "table": ("twinfalsify.sources.table",),
 }
 METHOD_MODULES: dict[str, str] = {
     "bootstrap": "twinfalsify.inference.bootstrap",

@@ -12,11 +12,8 @@ from twinfalsify.provenance import code_fingerprint, code_scope, script_modules 
 from twinfalsify.runs.plan import shard_runtime_minutes  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
-from twinfalsify.studyconfig import (  # noqa: E402
-    figure_ids_error,
-    shard_count,
-    study_config_error,
-)
+from twinfalsify.figure_ids import figure_ids_error  # noqa: E402
+from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E402
 
 
 # Everything that can be checked from the config alone is checked here, at parse time,
