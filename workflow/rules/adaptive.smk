@@ -35,7 +35,7 @@ rule twin_shard_adaptive:
         runs=canon(config["twin_runs"]),
         testing=canon(config["testing"]),
         seed=config["seed"],
-        code=code("twin_adaptive_shard"),
+        code=lambda w: shard_code(w.twin, "twin_adaptive_shard"),
     script:
         "../../scripts/twin_adaptive_shard.py"
 

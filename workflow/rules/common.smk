@@ -166,12 +166,12 @@ def served_modules(twin):
 _COMMAND_CODE = {}
 
 
-def shard_code(twin):
-    """The twin_shard `code` param: library modules its script reaches (and the served
-    ones); for a `command` twin also the fingerprint of the files it runs (its script,
-    files its command names, its spec's `code:` list; contents only), so editing them
-    reruns exactly its shards and what follows (twinfalsify.runs.command)."""
-    fingerprint = code("twin_shard", served_modules(twin))
+def shard_code(twin, script="twin_shard"):
+    """A twin shard's `code` param (fixed or adaptive `script`): library modules its script
+    reaches (and the served ones); for a `command` twin also the fingerprint of the files
+    it runs (its script, files its command names, its spec's `code:` list; contents only),
+    so editing them reruns exactly its shards and what follows (twinfalsify.runs.command)."""
+    fingerprint = code(script, served_modules(twin))
     if config["twins"][twin]["kind"] != "command":
         return fingerprint
     if twin not in _COMMAND_CODE:  # once per parse, not once per shard job
