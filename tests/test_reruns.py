@@ -30,7 +30,7 @@ from test_bad_inputs import ROOT
 pytestmark = pytest.mark.slow
 
 
-def _snakemake(repo, work, config, *args, timeout=900):
+def _snakemake(repo, work, config, *args, timeout=2400):
     return subprocess.run(
         [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
          str(work), "--configfile", str(config), "--cores", "2", *args],
