@@ -20,7 +20,8 @@ P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence
 stopping time, however data-dependent.
 
 Observational side: the fixed-sample betting bound (``betting.ordered_sides``, fixed-n
-plug-in bets in one seeded order, running maximum; Ville).
+plug-in bets in the data order of the fixed test, no seed: ``betting`` module doc "Order";
+running maximum; Ville).
 Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
 max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
 (``betting._crossing``), evaluated with the twin data revealed
@@ -246,7 +247,7 @@ class SequentialState:
 
     ``budget``: runs per sequence at most (the plan's m by default); ``n_family``: 2 H_f per
     hypothesis (defaults to :func:`family_sizes`). ``only``: a shard runs its own hypotheses
-    but builds the state on the whole study, so the observational order and bets (seeded
+    but builds the state on the whole study, so the observational order and bets (hashed
     over all hypotheses) and hence every decision equal the unsharded ones.
     """
 
@@ -301,12 +302,13 @@ class SequentialState:
             raise ValueError("sequential: y_up must exceed y_lo for every hypothesis")
         empty = Ragged(np.zeros(0), np.zeros(h + 1, dtype=np.int64))
         self.obs_samples = HypothesisSamples(self.y_lo, self.y_up, self.obs.n,
-                                             self.obs.follow, empty)
-        # plug-in bets in one seeded order, running maximum (the grid mixture of the fixed
-        # scheme, measured too: same decisions, ~5x the compute;
-        # docs/explanation/sequential.md)
+                                             self.obs.follow, empty,
+                                             follow_pos=self.obs.follow_pos)
+        # plug-in bets in the data order (as the fixed test's default: no seed), running
+        # maximum (the grid mixture of the fixed scheme, measured too: same decisions, ~5x the
+        # compute; docs/explanation/sequential.md)
         self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c,
-                                            orders=1)
+                                            orders=1, order="data")
         lev_star, lev = np.log(2.0 / self.a_star), np.full(h, np.log(2.0 / self.alpha))
         # L = sup{m: max K+_lo(m) >= 2/a}; U = inf{m: max K-_up(m) >= 2/a}
         # bounds are per hypothesis: compute them only where they are used (a shard's own);
