@@ -32,7 +32,7 @@ def main(sm):
     runs_cfg, testing = sm.params.runs, sm.params.testing
     spec = sm.params.spec
     spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
-    twin = make_twin(sm.wildcards.twin, spec, read_json(sm.input.context))
+    twin = make_twin(sm.wildcards.twin, spec, sm.input.context)  # a served twin needs the file
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     rows, decisions, summary = run_adaptive_shard(
         twin,

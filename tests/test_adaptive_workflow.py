@@ -27,7 +27,10 @@ def study(tmp_path_factory):
     cfg["study"] = "adaptive"
     cfg["twin_runs"] = {"runs_per_sequence": 200, "n_shards": 2, "mode": "adaptive",
                         "batch_size": 50}
-    cfg["twins"] = {"biased": {"kind": "biased", "shift": {"HR": 25.0}}}
+    # served over the twin protocol, as the default study's twins: the shard must hand the
+    # served twin its context file, not the parsed dict
+    cfg["twins"] = {"biased": {"kind": "biased", "shift": {"HR": 25.0}, "protocol": True,
+                               "workers": 1}}
     config = work / "adaptive.yaml"
     config.write_text(yaml.safe_dump(cfg))
     run = snakemake(work, config, "--cores", "2", *TARGETS)
