@@ -179,7 +179,7 @@ def test_encode_decode_round_trip_and_errors():
 # -- the documented example session ------------------------------------------
 
 def test_example_session_in_docs_follows_the_rules():
-    text = (ROOT / "docs" / "twin-protocol.md").read_text()
+    text = (ROOT / "docs" / "reference" / "twin-protocol.md").read_text()
     block = text.split("```jsonl\n", 1)[1].split("```", 1)[0]
     lines = [ln for ln in block.splitlines() if ln.strip()]
     sent = [json.loads(ln[3:]) for ln in lines if ln.startswith("-> ")]
