@@ -48,7 +48,7 @@ from twinfalsify.schema import ContractError
 
 from . import doses, hourly
 from .options import Mimic3Options
-from .tables import REQUIRED_COLUMNS, connect, data_table, diagnose, staged
+from .tables import INTUBATED_VERBAL, REQUIRED_COLUMNS, connect, data_table, diagnose, staged
 
 HOUR = pd.Timedelta(hours=1)
 AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
@@ -241,7 +241,7 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
 # measured verbal score (Teasdale & Jennett 1974; the MIMIC Code Repository's GCS concept
 # treats such charting as not assessable). gcs_intubated = "not_assessable" drops the GCS
 # total charted at that instant (CNS SOFA then has no value there); "verbal_1" keeps it.
-INTUBATED_VERBAL = ((723, "%ET/Trach%"), (223900, "No Response-ETT"))
+# The items are tables.INTUBATED_VERBAL (staging keeps them too).
 MEASURED_DIASTOLIC = (220051, 220180)  # MetaVision ABPd / NBPd: bp_items = "measured" only
 # GCS from RASS where no GCS is charted (AI-Clinician, after Wesley et al., JAMA 2003):
 # RASS >= 0 -> 15, -1 -> 14, -2 -> 12, -3 -> 11, -4 -> 6, -5 -> 3

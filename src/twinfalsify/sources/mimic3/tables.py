@@ -177,6 +177,11 @@ def _settings(con: duckdb.DuckDBPyConnection, memory_limit: str | None,
 STAGED = ("CHARTEVENTS", "LABEVENTS", "INPUTEVENTS_MV", "INPUTEVENTS_CV", "OUTPUTEVENTS")
 
 
+# GCS verbal charts that mean "intubated" (scored 0 by AI-Clinician): the one item list written
+# in code rather than in a data table; cohort selects them, staging must keep them.
+INTUBATED_VERBAL = ((723, "%ET/Trach%"), (223900, "No Response-ETT"))
+
+
 def read_items() -> dict[str, tuple[int, ...]]:
     """Per item-filtered staged table, every ITEMID an extraction query may select: every
     ``itemid`` of every package data table (items.csv, cultures.csv, heights.csv, ...:
@@ -184,8 +189,6 @@ def read_items() -> dict[str, tuple[int, ...]]:
     source only make the staged copy a little larger) and the intubated-verbal GCS items,
     the one item list written in the code. A query selecting an ITEMID outside these would
     see no rows for it: items belong in a data table."""
-    from .cohort import INTUBATED_VERBAL  # cohort imports this module at its top
-
     ids: set[int] = {int(i) for i, _ in INTUBATED_VERBAL}
     folder = resources.files("twinfalsify") / "data" / "mimic3"
     for f in sorted(folder.iterdir(), key=lambda f: f.name):
