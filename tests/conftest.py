@@ -26,6 +26,21 @@ def root() -> Path:
     return ROOT
 
 
+def copy_repo(repo: Path) -> Path:
+    """A copy of what a study needs from the checkout (Snakefile, workflow, scripts, src,
+    config, envs) in ``repo``, so a test may edit code without touching the checkout."""
+    import shutil
+
+    repo.mkdir(parents=True)
+    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+        src, dst = ROOT / part, repo / part
+        if src.is_dir():
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
+    return repo
+
+
 def run_snakemake(workdir: Path, config: Path, *args: str, timeout: int = 900):
     """``snakemake -s <repo>/Snakefile --directory workdir --configfile config *args``."""
     import subprocess

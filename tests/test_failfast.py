@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import copy_repo
 from fakes import FAULTY_TWIN
 from test_bad_inputs import ENV, ROOT, _inputs
 
@@ -301,18 +302,11 @@ def test_what_reruns_after_which_change(tmp_path):
     reruns exactly the rules whose scripts reach the edited module (params changed) and
     what is downstream of them (inputs updated); a study parameter reruns its consumers."""
     import re
-    import shutil
 
     import yaml
 
     repo = tmp_path / "repo"
-    repo.mkdir()
-    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
-        src, dst = ROOT / part, repo / part
-        if src.is_dir():
-            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(src, dst)
+    copy_repo(repo)
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
                               "timeout_s": 60, "retries": 1}

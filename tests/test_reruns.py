@@ -24,6 +24,7 @@ import sys
 import pandas as pd
 import pytest
 import yaml
+from conftest import copy_repo
 from fakes import FAULTY_TWIN
 from test_bad_inputs import ROOT
 
@@ -61,13 +62,7 @@ def study(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("reruns")
     repo = tmp / "repo"
-    repo.mkdir()
-    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
-        src, dst = ROOT / part, repo / part
-        if src.is_dir():
-            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(src, dst)
+    copy_repo(repo)
     work = tmp / "work"
     (work / "twin").mkdir(parents=True)
     shutil.copy(FAULTY_TWIN[1], work / "twin" / "faulty_twin.py")
