@@ -21,9 +21,10 @@ def main(sm):
 
         traj = read_table(source["table"]["path"])
     else:
-        from twinfalsify.sources.mimic3_rule import extract_for_study
+        from twinfalsify.sources.mimic_rule import extract_for_study
 
-        traj = extract_for_study(source.get("mimic3") or {}, Path(sm.output[0]).parent)
+        kind = source["kind"]
+        traj = extract_for_study(source.get(kind) or {}, Path(sm.output[0]).parent, kind)
     traj = validate_trajectories(traj, source=f"source {source['kind']}")
     log.info("%d stays, %d rows", traj[STAY_ID].nunique(), len(traj))
     write_parquet(traj, sm.output[0])

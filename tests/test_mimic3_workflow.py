@@ -85,7 +85,7 @@ FIX = ROOT / "tests" / "fixtures" / "mimic3"
 
 
 def test_data_fingerprint_follows_folder_and_files(tmp_path, monkeypatch):
-    from twinfalsify.sources.mimic3_rule import data_params
+    from twinfalsify.sources.mimic_rule import data_params
 
     a, b = tmp_path / "a", tmp_path / "b"
     shutil.copytree(FIX, a)

@@ -139,8 +139,11 @@ def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] =
 # methods by name, and the other modules that import one (inference.failures) only compare
 # a bound method with it. The sequential (adaptive) test bets whatever the methods are.
 SOURCE_MODULES: dict[str, tuple[str, ...]] = {
-    "mimic3": ("twinfalsify.sources.mimic3", "twinfalsify.sources.mimic3_rule",
+    "mimic3": ("twinfalsify.sources.mimic3", "twinfalsify.sources.mimic_rule",
                "twinfalsify.sources.checksums"),
+    # MIMIC-IV runs the MIMIC-III cohort code on its own table layout
+    "mimic4": ("twinfalsify.sources.mimic4", "twinfalsify.sources.mimic3",
+               "twinfalsify.sources.mimic_rule", "twinfalsify.sources.checksums"),
     "table": ("twinfalsify.sources.table",),
 }
 METHOD_MODULES: dict[str, str] = {
@@ -161,7 +164,9 @@ def code_scope(config: dict, all_methods: bool = False) -> tuple[list[str], list
     of other source kinds, and the modules of methods not in use (fixed mode only).
     """
     kind = (config.get("source") or {}).get("kind")
-    leave = [m for k, mods in SOURCE_MODULES.items() if k != kind for m in mods]
+    used_here = set(SOURCE_MODULES.get(kind, ()))
+    leave = sorted({m for k, mods in SOURCE_MODULES.items() if k != kind for m in mods}
+                   - used_here)
     names = set(METHOD_MODULES) if all_methods else set(
         (config.get("testing") or {}).get("methods") or {})
     used = sorted(METHOD_MODULES[n] for n in names if n in METHOD_MODULES)

@@ -8,7 +8,11 @@ from snakemake.utils import validate
 SRC = Path(workflow.basedir) / "src"
 sys.path.insert(0, str(SRC))
 from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
-from twinfalsify.provenance import code_fingerprint, code_scope, script_modules  # noqa: E402
+from twinfalsify.provenance import (
+    code_fingerprint,
+    code_scope,
+    script_modules,
+)  # noqa: E402
 from twinfalsify.runs.plan import shard_runtime_minutes  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
@@ -53,7 +57,9 @@ def _figure_ids_problem():
 
     try:
         ids = pd.read_parquet(hyps, columns=["hyp_id"])["hyp_id"]
-    except Exception:  # noqa: BLE001 - a damaged file: the design rule reruns and says so
+    except (
+        Exception
+    ):  # noqa: BLE001 - a damaged file: the design rule reruns and says so
         return None
     return figure_ids_error(config, ids)
 
@@ -170,7 +176,8 @@ def shard_code(twin, script="twin_shard"):
     """A twin shard's `code` param (fixed or adaptive `script`): library modules its script
     reaches (and the served ones); for a `command` twin also the fingerprint of the files
     it runs (its script, files its command names, its spec's `code:` list; contents only),
-    so editing them reruns exactly its shards and what follows (twinfalsify.runs.command)."""
+    so editing them reruns exactly its shards and what follows (twinfalsify.runs.command).
+    """
     fingerprint = code(script, served_modules(twin))
     if config["twins"][twin]["kind"] != "command":
         return fingerprint
@@ -215,15 +222,17 @@ def shard_runtime(wildcards, input, threads):
     )
 
 
-def mimic3_data():
-    """Resolved MIMIC-III folder + file fingerprint (mimic3 source only): a new folder or
-    a changed file reruns the extraction (twinfalsify.sources.mimic3_rule.data_params).
+def mimic_data():
+    """Resolved MIMIC folder + file fingerprint (mimic3 and mimic4 sources only): a new
+    folder or a changed file reruns the extraction
+    (twinfalsify.sources.mimic_rule.data_params).
     """
-    if config["source"]["kind"] != "mimic3":
+    kind = config["source"]["kind"]
+    if kind not in ("mimic3", "mimic4"):
         return ""
-    from twinfalsify.sources.mimic3_rule import data_params
+    from twinfalsify.sources.mimic_rule import data_params
 
-    return data_params(config["source"].get("mimic3"))
+    return data_params(config["source"].get(kind), kind)
 
 
 def table_source_files():

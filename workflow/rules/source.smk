@@ -14,7 +14,7 @@ rule trajectories:
         runtime=60,
     params:
         source=canon(config["source"]),
-        data=mimic3_data(),
+        data=mimic_data(),
         seed=config["seed"],
         code=code("trajectories"),
     script:

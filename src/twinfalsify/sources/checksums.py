@@ -1,4 +1,4 @@
-"""Which MIMIC-III files the extraction reads, and whether they are PhysioNet's.
+"""Which MIMIC files the extraction reads, and whether they are PhysioNet's.
 
 A damaged but readable file (a LABEVENTS cut to half its rows) gives a smaller cohort
 without an error; a folder holding two files for one table (``LABEVENTS.csv.gz`` and
@@ -19,7 +19,10 @@ list for the MIMIC-III Clinical Database Demo v1.4, shipped with the package
 the full MIMIC-III v1.4 is not shipped: keep PhysioNet's SHA256SUMS.txt from your download
 in the folder or name it in the config. Lists name the files as PhysioNet ships them; a
 ``.csv.gz`` copy of a listed ``.csv`` is checked by its decompressed content (case of the
-name ignored). A Parquet copy cannot be checked (said once).
+name ignored). A Parquet copy cannot be checked (said once). MIMIC-IV (``layout``
+``mimic4.MIMIC4``): its files are found in ``hosp/`` and ``icu/``, and only a list in the folder
+or in the config applies (PhysioNet's MIMIC-IV SHA256SUMS.txt names ``hosp/patients.csv.gz``
+etc.; the file name is what is matched).
 """
 
 from __future__ import annotations
@@ -32,37 +35,44 @@ from importlib import resources
 from pathlib import Path
 
 from twinfalsify.schema import ContractError
-from twinfalsify.sources.mimic3.tables import OPTIONAL_COLUMNS, REQUIRED_COLUMNS, candidate_names
+from twinfalsify.sources.mimic3.tables import (
+    MIMIC3,
+    OPTIONAL_COLUMNS,
+    REQUIRED_COLUMNS,
+    Layout,
+    candidate_names,
+)
 
 DEMO_SUMS = "mimiciii-demo-1.4.sha256"
 _LINE = re.compile(r"^([0-9a-fA-F]{64})\s+\*?(\S.*?)\s*$")
 _CHUNK = 1 << 20
 
 
-def table_files(folder: Path) -> dict[str, Path]:
+def table_files(folder: Path, layout: Layout = MIMIC3) -> dict[str, Path]:
     """Table -> the file the extraction reads, for every table present; ContractError naming
     both files when one table has two (which one is meant cannot be guessed)."""
     out: dict[str, Path] = {}
     for table in (*REQUIRED_COLUMNS, *OPTIONAL_COLUMNS):
-        found = [folder / n for n in candidate_names(table) if (folder / n).is_file()]
+        found = [folder / n for n in candidate_names(table, layout) if (folder / n).is_file()]
         # a case-insensitive file system lists one file under both cases: same file
         unique = list({p.resolve(): p for p in found}.values())
         if len(unique) > 1:
             raise ContractError(
-                f"MIMIC-III table {table} has {len(unique)} files in {folder}: "
-                f"{' and '.join(p.name for p in unique)}; keep one")
+                f"{layout.name} table {table} has {len(unique)} files in {folder}: "
+                f"{' and '.join(str(p.relative_to(folder)) for p in unique)}; keep one")
         if unique:
             out[table] = unique[0]
     return out
 
 
-def read_fingerprint(folder: Path) -> dict[str, str]:
+def read_fingerprint(folder: Path, layout: Layout = MIMIC3) -> dict[str, str]:
     """The resolved folder and a fingerprint (names, sizes, mtimes) of the files read."""
     folder = Path(folder).resolve()
     h = hashlib.sha256()
-    for table, p in sorted(table_files(folder).items()):
+    for table, p in sorted(table_files(folder, layout).items()):
         st = p.stat()
-        h.update(f"{table}\t{p.name}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
+        name = p.relative_to(folder).as_posix()
+        h.update(f"{table}\t{name}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
     return {"dir": str(folder), "files": h.hexdigest()[:16]}
 
 
@@ -103,18 +113,22 @@ def file_sha256(path: Path, sums: dict[str, str]) -> tuple[str | None, str | Non
     return None, None
 
 
-def choose_sums(folder: Path, configured: str | None,
-                files: dict[str, Path]) -> tuple[dict[str, str], str]:
+def choose_sums(folder: Path, configured: str | None, files: dict[str, Path],
+                layout: Layout = MIMIC3) -> tuple[dict[str, str], str]:
     """(checksums, where they come from) for ``folder`` (see the module doc); ({}, why) when
     none applies."""
     if configured:
         path = Path(configured).expanduser()
         if not path.is_file():
-            raise ContractError(f"source.mimic3.checksums: {path} does not exist")
+            raise ContractError(f"{layout.config_key}.checksums: {path} does not exist")
         return parse_sums(path.read_text(), str(path)), str(path)
     inside = sorted(folder.glob("SHA256SUMS*.txt"))
     if inside:
         return parse_sums(inside[0].read_text(), str(inside[0])), str(inside[0])
+    if layout is not MIMIC3:
+        return {}, (f"no published checksums for this folder (keep PhysioNet's "
+                    f"SHA256SUMS.txt of your {layout.name} download in the folder or name it "
+                    f"as {layout.config_key}.checksums)")
     shipped = resources.files("twinfalsify") / "data" / "checksums" / DEMO_SUMS
     demo = parse_sums(shipped.read_text(), DEMO_SUMS)
     patients = files.get("PATIENTS")
@@ -128,7 +142,7 @@ def choose_sums(folder: Path, configured: str | None,
 
 
 def verify(folder: Path, configured: str | None = None,
-           cache: Path | None = None) -> list[str]:
+           cache: Path | None = None, layout: Layout = MIMIC3) -> list[str]:
     """Warnings (one line each) for the files the extraction reads that differ from the
     published checksums, or cannot be checked; [] when every file read matches.
 
@@ -136,8 +150,9 @@ def verify(folder: Path, configured: str | None = None,
     checksum source), so the hashing (minutes for the full database) happens once.
     """
     folder = Path(folder)
-    files = table_files(folder)
-    key = json.dumps({"data": read_fingerprint(folder), "sums": configured}, sort_keys=True)
+    files = table_files(folder, layout)
+    key = json.dumps({"data": read_fingerprint(folder, layout), "sums": configured},
+                     sort_keys=True)
     if cache is not None and cache.is_file():
         try:
             saved = json.loads(cache.read_text())
@@ -145,10 +160,10 @@ def verify(folder: Path, configured: str | None = None,
                 return list(saved["warnings"])
         except (json.JSONDecodeError, KeyError, TypeError):
             pass
-    sums, origin = choose_sums(folder, configured, files)
+    sums, origin = choose_sums(folder, configured, files, layout)
     warnings = []
     if not sums:
-        warnings.append(f"MIMIC-III files not verified: {origin}")
+        warnings.append(f"{layout.name} files not verified: {origin}")
     else:
         unlisted = []
         for _, path in sorted(files.items()):
@@ -157,11 +172,11 @@ def verify(folder: Path, configured: str | None = None,
                 unlisted.append(path.name)
             elif published != actual:
                 warnings.append(
-                    f"MIMIC-III file {path} differs from the published checksum ({origin}): "
+                    f"{layout.name} file {path} differs from the published checksum ({origin}): "
                     f"SHA-256 {actual[:16]}... instead of {published[:16]}...; a damaged or "
                     "edited table changes the cohort without an error")
         if unlisted:
-            warnings.append(f"MIMIC-III files not in the checksum list ({origin}), not "
+            warnings.append(f"{layout.name} files not in the checksum list ({origin}), not "
                             f"verified: {', '.join(unlisted)}")
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)

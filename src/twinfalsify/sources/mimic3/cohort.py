@@ -48,7 +48,16 @@ from twinfalsify.schema import ContractError
 
 from . import doses, hourly
 from .options import Mimic3Options
-from .tables import INTUBATED_VERBAL, REQUIRED_COLUMNS, connect, data_table, diagnose, staged
+from .tables import (
+    INTUBATED_VERBAL,
+    MIMIC3,
+    REQUIRED_COLUMNS,
+    Layout,
+    connect,
+    data_table,
+    diagnose,
+    staged,
+)
 
 HOUR = pd.Timedelta(hours=1)
 AGE_SHIFTED = 91.4  # MIMIC shifts DOB of patients > 89 y; AI-Clinician sets their age to 91.4
@@ -83,24 +92,40 @@ def _ts(col: str) -> str:
     return f"TRY_CAST({col} AS TIMESTAMP)"
 
 
-def _stays(con) -> pd.DataFrame:
+def _stays(con, layout: Layout = MIMIC3) -> pd.DataFrame:
+    """Every ICU stay with its patient's age at INTIME (``age``), sex and the admission's
+    mortality flag. Age: MIMIC-III ``(INTIME - DOB) / 365.25 d``, its shifted ages over 89
+    (DOB about 300 years before) set to 91.4; MIMIC-IV (``layout.age == "anchor"``), where
+    only the year is known, ``anchor_age + year(INTIME) - anchor_year``, its ages over 89
+    (anchor_age 91) set to 91.4 likewise."""
+    born = ("TRY_CAST(p.ANCHOR_AGE AS DOUBLE) AS anchor_age, "
+            "TRY_CAST(p.ANCHOR_YEAR AS INTEGER) AS anchor_year" if layout.age == "anchor"
+            else f"{_ts('p.DOB')} AS dob")
     df = con.execute(f"""
         SELECT CAST(i.ICUSTAY_ID AS BIGINT) AS icustay_id,
                CAST(i.SUBJECT_ID AS BIGINT) AS subject_id,
                CAST(i.HADM_ID AS BIGINT) AS hadm_id, i.DBSOURCE AS dbsource,
                {_ts('i.INTIME')} AS intime, {_ts('i.OUTTIME')} AS outtime,
-               {_ts('p.DOB')} AS dob, {_ts('p.DOD')} AS dod, p.GENDER AS gender,
+               {born}, {_ts('p.DOD')} AS dod, p.GENDER AS gender,
                TRY_CAST(a.HOSPITAL_EXPIRE_FLAG AS INTEGER) AS hospital_expire_flag
         FROM ICUSTAYS i
         JOIN PATIENTS p ON CAST(i.SUBJECT_ID AS BIGINT) = CAST(p.SUBJECT_ID AS BIGINT)
         LEFT JOIN ADMISSIONS a ON CAST(i.HADM_ID AS BIGINT) = CAST(a.HADM_ID AS BIGINT)
         ORDER BY icustay_id""").df()
-    bad = df["intime"].isna() | df["dob"].isna()
+    if layout.age == "anchor":
+        birth_cols, birth_name = ["anchor_age", "anchor_year"], "anchor_age or anchor_year"
+    else:
+        birth_cols, birth_name = ["dob"], "DOB"
+    bad = df["intime"].isna() | df[birth_cols].isna().any(axis=1)
     if bad.any():
-        raise ContractError(f"ICUSTAYS/PATIENTS: {int(bad.sum())} stay(s) without INTIME or DOB, "
-                            f"e.g. ICUSTAY_ID {df.loc[bad, 'icustay_id'].iloc[0]}")
-    age = (df["intime"] - df["dob"]).dt.total_seconds() / (365.25 * 86400)
-    df["age"] = np.where(age > 150, AGE_SHIFTED, age)
+        raise ContractError(f"ICUSTAYS/PATIENTS: {int(bad.sum())} stay(s) without INTIME or "
+                            f"{birth_name}, e.g. ICUSTAY_ID {df.loc[bad, 'icustay_id'].iloc[0]}")
+    if layout.age == "anchor":
+        age = df["anchor_age"] + (df["intime"].dt.year - df["anchor_year"])
+        df["age"] = np.where(df["anchor_age"] > 89, AGE_SHIFTED, age)
+    else:
+        age = (df["intime"] - df["dob"]).dt.total_seconds() / (365.25 * 86400)
+        df["age"] = np.where(age > 150, AGE_SHIFTED, age)
     g = df["gender"].astype("string").str.upper().str.strip()
     df["sex"] = np.where(g == "F", 1.0, np.where(g == "M", 0.0, np.nan))
     return df.set_index("icustay_id", drop=False)
@@ -639,8 +664,10 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
                    anchor: str = "first_vitals", anchor_window_h: int = ANCHOR_WINDOW_H,
                    options: Mimic3Options | None = None, memory_limit: str | None = None,
                    temp_directory: str | Path | None = None,
-                   stage: bool = True) -> Mimic3Cohort:
-    """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories.
+                   stage: bool = True, layout: Layout = MIMIC3) -> Mimic3Cohort:
+    """Sepsis-3 cohort from the MIMIC-III v1.4 tables in ``folder`` as hourly trajectories
+    (``layout``: another release's tables mapped onto MIMIC-III's, e.g. MIMIC-IV's:
+    ``twinfalsify.sources.mimic4``).
 
     Trajectory row (stay, t): features over hour [T0 + t h, T0 + (t+1) h) (block means,
     sample-and-hold from before the hour, weight and labs still missing imputed by 1-NN from
@@ -664,27 +691,29 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
     """
     opts = options or Mimic3Options()
     if anchor not in ANCHORS:
-        raise ContractError(f"mimic3 source: anchor must be one of {ANCHORS}, got {anchor!r}")
+        raise ContractError(f"{layout.kind} source: anchor must be one of {ANCHORS}, "
+                            f"got {anchor!r}")
     if int(anchor_window_h) < 1:
-        raise ContractError(f"mimic3 source: anchor_window_h must be >= 1, got {anchor_window_h}")
+        raise ContractError(f"{layout.kind} source: anchor_window_h must be >= 1, "
+                            f"got {anchor_window_h}")
     folder = Path(folder)
     optional = ("OUTPUTEVENTS",) if opts.sofa == "ai_clinician" else ()
     con = connect(folder, threads=threads, optional=optional, memory_limit=memory_limit,
-                  temp_directory=temp_directory)
+                  temp_directory=temp_directory, layout=layout)
     try:
         if not stage:
-            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts, layout)
         with staged(con, temp_directory):
-            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts)
+            return _extract(con, folder, t_max, anchor, int(anchor_window_h), opts, layout)
     except duckdb.Error as exc:  # damage deep in a file: name it, no traceback
-        raise diagnose(folder, (*REQUIRED_COLUMNS, *optional), exc) from None
+        raise diagnose(folder, (*REQUIRED_COLUMNS, *optional), exc, layout) from None
     finally:
         con.close()
 
 
 def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
-             opts: Mimic3Options) -> Mimic3Cohort:
-    allst = _stays(con)
+             opts: Mimic3Options, layout: Layout = MIMIC3) -> Mimic3Cohort:
+    allst = _stays(con, layout)
     ids_all = allst.index
     crit = pd.DataFrame(index=ids_all)  # True = met, False = failed, NA = not evaluated
     crit["adult"] = (allst["age"] >= 18).to_numpy()
@@ -855,7 +884,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     traj[schema.SUBJECT_ID] = stays["subject_id"].reindex(traj[schema.STAY_ID]).to_numpy()
     traj = traj[[*schema.TRAJECTORY_COLUMNS, schema.SUBJECT_ID]]
     if len(traj):
-        traj = schema.validate_trajectories(traj, source=f"mimic3 extraction of {folder}",
+        traj = schema.validate_trajectories(traj, source=f"{layout.kind} extraction of {folder}",
                                             t_max=t_max)
     anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),

@@ -1,18 +1,25 @@
-"""Locate MIMIC-III v1.4 tables on disk and expose them to DuckDB, plus the package's data tables.
+"""Locate MIMIC tables on disk and expose them to DuckDB, plus the package's data tables.
 
 MIMIC-III is shipped by PhysioNet as upper-case ``TABLE.csv.gz`` files (the full
 database) or lower-case files (some mirrors); users also convert to Parquet.
 Every table is opened lazily as a DuckDB view, so CHARTEVENTS (~330 M rows in
 the full database) is only ever scanned by SQL filtered to the item ids and
 hours needed, never loaded whole into pandas.
+
+The extraction's queries are written against MIMIC-III v1.4's tables and columns (the view
+names and columns below). A :class:`Layout` says where a release keeps each table and how
+its columns give those: ``MIMIC3`` reads the files as they are; MIMIC-IV's layout
+(``twinfalsify.sources.mimic4``) maps its ``hosp/`` and ``icu/`` tables onto the same views,
+so both releases run the same cohort code.
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -47,42 +54,83 @@ OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 
 
-def resolve_mimic3_dir(configured: str | os.PathLike[str] | None) -> Path:
-    """The MIMIC-III folder: env var ``TWINFALSIFY_MIMIC3_DIR`` if set, else ``configured``.
+@dataclass(frozen=True)
+class Layout:
+    """Where a MIMIC release keeps the tables the extraction reads, and how their columns
+    give MIMIC-III v1.4's (the names the extraction's queries use).
+
+    ``files``: view -> file stems tried, relative to the folder (each with every suffix of
+    ``SUFFIXES``); a view without stems is empty (e.g. INPUTEVENTS_CV: MIMIC-IV has no
+    CareVue). ``select``: view -> SELECT list over the file's columns giving the view's
+    columns (absent: the file as it is). ``columns``: the file's columns the view needs,
+    checked on open. ``age``: ``"dob"`` (age = INTIME - DOB) or ``"anchor"`` (MIMIC-IV:
+    anchor_age + year of INTIME - anchor_year; PATIENTS gives ANCHOR_AGE, ANCHOR_YEAR)."""
+
+    name: str  # in messages: "MIMIC-III", "MIMIC-IV"
+    kind: str  # the config's source kind, e.g. "mimic3"
+    env_var: str
+    files: Mapping[str, tuple[str, ...]]
+    columns: Mapping[str, tuple[str, ...]]
+    select: Mapping[str, str] = field(default_factory=dict)
+    age: str = "dob"
+    example: str = "PATIENTS.csv.gz, ICUSTAYS.csv.gz, CHARTEVENTS.csv.gz, ..."
+
+    @property
+    def config_key(self) -> str:
+        return f"source.{self.kind}"
+
+
+MIMIC3 = Layout(
+    name="MIMIC-III", kind="mimic3", env_var=ENV_VAR,
+    files={t: (t.upper(), t.lower()) for t in (*REQUIRED_COLUMNS, *OPTIONAL_COLUMNS)},
+    columns={**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS})
+
+
+def resolve_dir(configured: str | os.PathLike[str] | None, layout: Layout = MIMIC3) -> Path:
+    """The release's folder: its environment variable (``TWINFALSIFY_MIMIC3_DIR`` for
+    MIMIC-III) if set, else ``configured``.
 
     Raises ContractError naming the folder and the environment variable when
     neither is given or the folder does not exist.
     """
-    env = os.environ.get(ENV_VAR)
+    env_var = layout.env_var
+    env = os.environ.get(env_var)
     chosen = env if env else configured
-    origin = f"environment variable {ENV_VAR}" if env else "config (mimic3 path)"
+    origin = f"environment variable {env_var}" if env else f"config ({layout.kind} path)"
     if not chosen:
         raise ContractError(
-            f"no MIMIC-III folder given: set the config path or the environment variable {ENV_VAR}"
+            f"no {layout.name} folder given: set the config path or the environment variable "
+            f"{env_var}"
         )
     path = Path(chosen).expanduser()
     if not path.is_dir():
         raise ContractError(
-            f"MIMIC-III folder {path} (from {origin}) does not exist or is not a folder; "
-            f"point the config or {ENV_VAR} at the folder holding PATIENTS.csv.gz, "
-            f"ICUSTAYS.csv.gz, CHARTEVENTS.csv.gz, ..."
+            f"{layout.name} folder {path} (from {origin}) does not exist or is not a folder; "
+            f"point the config or {env_var} at the folder holding {layout.example}"
         )
     return path
 
 
-def candidate_names(table: str) -> list[str]:
-    """File names tried for ``table``, in order (upper then lower case; csv.gz, csv, parquet)."""
-    return [f"{base}{suf}" for base in (table.upper(), table.lower()) for suf in SUFFIXES]
+def resolve_mimic3_dir(configured: str | os.PathLike[str] | None) -> Path:
+    """The MIMIC-III folder: env var ``TWINFALSIFY_MIMIC3_DIR`` if set, else ``configured``."""
+    return resolve_dir(configured, MIMIC3)
 
 
-def find_table(folder: Path, table: str) -> Path:
+def candidate_names(table: str, layout: Layout = MIMIC3) -> list[str]:
+    """Paths (relative to the folder) tried for ``table``, in order: each stem of the layout
+    (MIMIC-III: upper then lower case) with csv.gz, csv, parquet."""
+    return [f"{base}{suf}" for base in layout.files.get(table, ()) for suf in SUFFIXES]
+
+
+def find_table(folder: Path, table: str, layout: Layout = MIMIC3) -> Path:
     """Path of ``table`` inside ``folder``; ContractError naming folder and names tried."""
-    for name in candidate_names(table):
+    for name in candidate_names(table, layout):
         p = folder / name
         if p.is_file():
             return p
     raise ContractError(
-        f"MIMIC-III table {table} not found in {folder}; tried {', '.join(candidate_names(table))}"
+        f"{layout.name} table {table} not found in {folder}; tried "
+        f"{', '.join(candidate_names(table, layout))}"
     )
 
 
@@ -95,18 +143,20 @@ def _reader(path: Path) -> str:
     return f"read_csv({lit}, header = true, all_varchar = true, quote = '\"', escape = '\"')"
 
 
-def _unreadable(path: Path, exc: Exception) -> ContractError:
+def _unreadable(path: Path, exc: Exception, layout: Layout = MIMIC3) -> ContractError:
     """One line naming the file, from a DuckDB error (its first line, without the class)."""
     msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return ContractError(f"{path}: cannot be read as a MIMIC-III table ({msg}); the file may be "
-                         "truncated or corrupt: download or export it again")
+    return ContractError(f"{path}: cannot be read as a {layout.name} table ({msg}); the file "
+                         "may be truncated or corrupt: download or export it again")
 
 
 def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 1,
             optional: tuple[str, ...] = (), *, memory_limit: str | None = None,
-            temp_directory: str | os.PathLike[str] | None = None) -> duckdb.DuckDBPyConnection:
-    """DuckDB connection with one view per MIMIC table (upper-case view names): ``tables``
-    (default: every table of REQUIRED_COLUMNS) plus ``optional`` ones (OPTIONAL_COLUMNS).
+            temp_directory: str | os.PathLike[str] | None = None,
+            layout: Layout = MIMIC3) -> duckdb.DuckDBPyConnection:
+    """DuckDB connection with one view per MIMIC table (MIMIC-III's upper-case view names and
+    columns, whatever the ``layout``): ``tables`` (default: every table of REQUIRED_COLUMNS)
+    plus ``optional`` ones (OPTIONAL_COLUMNS).
 
     ``memory_limit`` (DuckDB syntax, e.g. ``"4GB"``; default DuckDB's, 80 % of RAM) caps
     DuckDB's buffers; beyond it DuckDB spills to ``temp_directory`` (default: DuckDB's).
@@ -117,34 +167,46 @@ def connect(folder: Path, tables: tuple[str, ...] | None = None, threads: int = 
     con = duckdb.connect(database=":memory:")
     con.execute(f"SET threads = {int(threads)}")
     con.execute("SET enable_progress_bar = false")  # it would write to the rule's stderr
-    _settings(con, memory_limit, temp_directory)
-    needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}
+    _settings(con, memory_limit, temp_directory, layout)
     for table in (*(tables or tuple(REQUIRED_COLUMNS)), *optional):
-        path = find_table(folder, table)
         try:
-            con.execute(f'CREATE VIEW "{table}" AS SELECT * FROM {_reader(path)}')
-            cols = {c.upper() for c in
-                    con.execute(f'SELECT * FROM "{table}" LIMIT 0').df().columns}
-            empty = con.execute(f'SELECT 1 FROM "{table}" LIMIT 1').fetchone() is None
-        except duckdb.Error as exc:
+            _open_view(con, folder, table, layout)
+        except BaseException:
             con.close()
-            raise _unreadable(path, exc) from None
-        missing = [c for c in needed.get(table, ()) if c not in cols]
-        if missing:
-            con.close()
-            raise ContractError(
-                f"{path}: missing MIMIC-III v1.4 column(s) {', '.join(missing)} "
-                f"(found {', '.join(sorted(cols))})"
-            )
-        if empty:
-            con.close()
-            raise ContractError(f"{path}: header only, no rows: every MIMIC-III table the "
-                                "extraction reads has rows; the file may be cut short")
+            raise
     return con
 
 
+def _open_view(con: duckdb.DuckDBPyConnection, folder: Path, table: str, layout: Layout) -> None:
+    """Create the view ``table`` from its file under ``layout``, after checking the file."""
+    needed = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}[table]
+    if not layout.files.get(table):  # the release has no such table: an empty view
+        cols = ", ".join(f'CAST(NULL AS VARCHAR) AS "{c}"' for c in needed)
+        con.execute(f'CREATE VIEW "{table}" AS SELECT {cols} LIMIT 0')
+        return
+    path = find_table(folder, table, layout)
+    try:
+        con.execute(f'CREATE VIEW "_file_{table}" AS SELECT * FROM {_reader(path)}')
+        cols = {c.upper() for c in
+                con.execute(f'SELECT * FROM "_file_{table}" LIMIT 0').df().columns}
+        empty = con.execute(f'SELECT 1 FROM "_file_{table}" LIMIT 1').fetchone() is None
+    except duckdb.Error as exc:
+        raise _unreadable(path, exc, layout) from None
+    missing = [c for c in layout.columns.get(table, ()) if c.upper() not in cols]
+    if missing:
+        raise ContractError(
+            f"{path}: missing {layout.name} column(s) {', '.join(missing)} "
+            f"(found {', '.join(sorted(cols))})"
+        )
+    if empty:
+        raise ContractError(f"{path}: header only, no rows: every {layout.name} table the "
+                            "extraction reads has rows; the file may be cut short")
+    select = layout.select.get(table, "*")
+    con.execute(f'CREATE VIEW "{table}" AS SELECT {select} FROM "_file_{table}"')
+
+
 def _settings(con: duckdb.DuckDBPyConnection, memory_limit: str | None,
-              temp_directory: str | os.PathLike[str] | None) -> None:
+              temp_directory: str | os.PathLike[str] | None, layout: Layout = MIMIC3) -> None:
     """Apply the config's DuckDB memory limit and temporary folder; ContractError naming the
     config key when DuckDB refuses a value or the folder cannot be made."""
     if memory_limit is not None:
@@ -153,7 +215,7 @@ def _settings(con: duckdb.DuckDBPyConnection, memory_limit: str | None,
         except duckdb.Error as exc:
             con.close()
             first = str(exc).strip().splitlines()[0]
-            raise ContractError(f"config key source.mimic3.memory_limit: {memory_limit!r} is "
+            raise ContractError(f"config key {layout.config_key}.memory_limit: {memory_limit!r} is "
                                 f"not a DuckDB memory size such as '4GB' ({first})") from None
     if temp_directory is not None:
         path = Path(temp_directory).expanduser()
@@ -161,7 +223,7 @@ def _settings(con: duckdb.DuckDBPyConnection, memory_limit: str | None,
             path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             con.close()
-            raise ContractError(f"config key source.mimic3.temp_directory: cannot create "
+            raise ContractError(f"config key {layout.config_key}.temp_directory: cannot create "
                                 f"{path} ({exc.strerror})") from None
         con.execute("SET temp_directory = ?", [str(path)])
 
@@ -237,35 +299,23 @@ def staged(con: duckdb.DuckDBPyConnection,
         yield stage(con, Path(d))
 
 
-def diagnose(folder: Path, tables: tuple[str, ...], exc: Exception) -> ContractError:
+def diagnose(folder: Path, tables: tuple[str, ...], exc: Exception,
+             layout: Layout = MIMIC3) -> ContractError:
     """After a DuckDB error in a query: scan each table in full (only on this failure path)
     and name the first that cannot be read; else name the folder and the error."""
     for table in tables:
-        path = find_table(folder, table)
+        if not layout.files.get(table):
+            continue
+        path = find_table(folder, table, layout)
         con = duckdb.connect(database=":memory:")
         try:
             con.execute(f"SELECT count(*) FROM {_reader(path)}").fetchone()
         except duckdb.Error as exc2:
-            return _unreadable(path, exc2)
+            return _unreadable(path, exc2, layout)
         finally:
             con.close()
     first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return ContractError(f"MIMIC-III tables in {folder}: query failed ({first})")
-
-
-def data_fingerprint(folder: Path) -> dict[str, str]:
-    """The resolved folder and a cheap fingerprint of its files (names, sizes, mtimes; no
-    content is read): a rule parameter, so that another folder or a changed file reruns
-    the extraction."""
-    import hashlib
-
-    folder = Path(folder).resolve()
-    h = hashlib.sha256()
-    for f in sorted(folder.iterdir()):
-        if f.is_file():
-            st = f.stat()
-            h.update(f"{f.name}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
-    return {"dir": str(folder), "files": h.hexdigest()[:16]}
+    return ContractError(f"{layout.name} tables in {folder}: query failed ({first})")
 
 
 # ---------------------------------------------------------------- package data tables
