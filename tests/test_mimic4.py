@@ -269,3 +269,14 @@ def test_a_mimic4_study_extracts_through_the_workflow(pair, tmp_path):
     assert meta["release"] == "MIMIC-IV"
     consort = pd.read_csv(tmp_path / "results" / "m4" / "cohort" / "consort.csv")
     assert consort["n_stays"].iloc[-1] == got[schema.STAY_ID].nunique()
+
+
+def test_command_line_extracts_mimic4(pair, tmp_path, capsys):
+    from twinfalsify.sources.mimic3.cohort import main
+
+    main([str(pair / "mimic4"), str(tmp_path / "out")], layout=MIMIC4)
+    got = pd.read_parquet(tmp_path / "out" / "trajectories.parquet")
+    assert got[schema.STAY_ID].nunique() == extract_mimic4(pair / "mimic4").trajectories[
+        schema.STAY_ID].nunique()
+    with pytest.raises(SystemExit, match="ERROR: MIMIC-IV table PATIENTS not found"):
+        main([str(pair / "mimic3"), str(tmp_path / "out2")], layout=MIMIC4)

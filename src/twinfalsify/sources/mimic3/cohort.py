@@ -958,10 +958,11 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     return a.reset_index(drop=True)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """CLI: python -m twinfalsify.sources.mimic3 FOLDER OUTDIR [options]."""
+def main(argv: list[str] | None = None, layout: Layout = MIMIC3) -> None:
+    """CLI: python -m twinfalsify.sources.mimic3 FOLDER OUTDIR [options] (MIMIC-IV:
+    python -m twinfalsify.sources.mimic4 ...)."""
     from .options import CHOICES, PRESETS, options_from_config
-    from .tables import resolve_mimic3_dir
+    from .tables import resolve_dir
 
     p = argparse.ArgumentParser(description=main.__doc__)
     p.add_argument("folder")
@@ -978,10 +979,10 @@ def main(argv: list[str] | None = None) -> None:
     a = p.parse_args(argv)
     cfg = {"cohort_variant": a.cohort_variant, **{k: getattr(a, k) for k in CHOICES}}
     try:
-        res = extract_mimic3(resolve_mimic3_dir(a.folder), t_max=a.t_max, threads=a.threads,
+        res = extract_mimic3(resolve_dir(a.folder, layout), t_max=a.t_max, threads=a.threads,
                              anchor=a.anchor, anchor_window_h=a.anchor_window_h,
                              options=options_from_config(cfg), memory_limit=a.memory_limit,
-                             temp_directory=a.temp_dir)
+                             temp_directory=a.temp_dir, layout=layout)
     except ContractError as exc:  # bad input: one line naming the file, no traceback
         raise SystemExit(f"ERROR: {exc}") from None
     out = Path(a.outdir)
