@@ -140,3 +140,48 @@ def test_true_interventional_mean_lies_within_bounds(cohort):
         assert q_lo - slack <= q_true <= q_up + slack, (h.kind, h.outcome, h.t)
         checked += 1
     assert checked >= 20
+
+
+def test_paper_scale_x4_world_keeps_every_value_plausible():
+    """46,708 stays (4x the paper's cohort): the Gaussian tails once put paCO2 at 3.8 mmHg
+    (range [5, 200]) and the study stopped at its first rule. Now X_0 is drawn inside the
+    ranges and later hours are clipped to them."""
+    from twinfalsify.sources.synthetic import generate
+
+    traj = generate({"n_stays": 46_708, "confounding": 1.0}, seed=20260522)
+    validate_trajectories(traj, source="synthetic")
+
+
+def test_oracle_stays_exact_when_ranges_truncate_x0_and_clip_later_hours(monkeypatch):
+    """With ranges narrow enough that many X_0 are drawn again and many later values are
+    clipped (HCO3 in [20, 26], paCO2 in [36, 200]), every value lies inside them and the
+    oracle still matches a randomised trial in that world, conditionally on X_0: the
+    truncation depends on X_0 alone, so p(U | X_0) is unchanged, and both clip alike."""
+    from twinfalsify.sources import synthetic
+
+    lo, hi = synthetic._LO.copy(), synthetic._HI.copy()
+    lo[FEATURES.index("HCO3")], hi[FEATURES.index("HCO3")] = 20.0, 26.0
+    lo[FEATURES.index("paCO2")] = 36.0
+    monkeypatch.setattr(synthetic, "_LO", lo)
+    monkeypatch.setattr(synthetic, "_HI", hi)
+    doses = np.array([[400.0, 0.3], [400.0, 0.3], [0.0, 0.0], [150.0, 0.0]])
+    world = SyntheticWorld(n_stays=40_000)
+    trial = world.sample_observational(9, fixed_doses=doses)
+    x = to_array(trial, FEATURES)
+    assert (x >= lo).all() and (x <= hi).all()
+    j_hco3 = FEATURES.index("HCO3")
+    assert (x[:, 1:, j_hco3] == 20.0).mean() > 0.02  # the clip is active
+    x0 = pd.DataFrame(x[:, 0, :], columns=list(FEATURES))
+    seeds = noise.combine(np.uint64(3), np.arange(len(x0), dtype=np.uint64))
+    sim = world.simulate_interventional(x0, np.broadcast_to(doses, (len(x0), 4, 2)).copy(),
+                                        seeds)
+    assert (sim >= lo).all() and (sim <= hi).all()
+    for k in ("HCO3", "paCO2", "SysBP"):
+        j = FEATURES.index(k)
+        for t in (1, 4):
+            a, b = x[:, t, j], sim[:, t - 1, j]
+            se = np.sqrt(a.var() / len(a) + b.var() / len(b))
+            assert abs(a.mean() - b.mean()) < 4 * se, (k, t)
+            assert b.std() == pytest.approx(a.std(), rel=0.04), (k, t)
+            ca, cb = np.cov(a, x[:, 0, j])[0, 1], np.cov(b, x[:, 0, j])[0, 1]
+            assert cb == pytest.approx(ca, rel=0.1, abs=0.05 * a.var()), (k, t)

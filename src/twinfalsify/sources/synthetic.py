@@ -21,6 +21,11 @@ Structure (all per stay; hours t = 0..T):
   vasopressor. U also drives deterioration (d_k), so U confounds treatment and
   outcome: the treated look worse than they would under the same treatment
   given at random.
+* Plausible values: every value lies in the trajectory contract's plausible range
+  (``schema.FEATURE_TABLE``; the Gaussian tails would leave it once in about a million
+  values, e.g. paCO2 below 5 mmHg). X_0 is drawn from its law truncated to the ranges (a
+  stay whose X_0 leaves one is drawn again: U, e_0 and the MeanBP noise), and a value of
+  hour t >= 1 is clipped to its range, in the observed world and in the oracle alike.
 
 Exact interventional law. Actions do not affect U or X_0, and given U the
 dynamics are linear-Gaussian in U with doses fixed, so
@@ -31,7 +36,9 @@ with p(U | x_0) Gaussian in closed form (conjugate): precision
 1 + sum_k b0_k^2 / s0_k^2 and mean sum_k b0_k (z_0[k] - m_k) / s0_k^2 / precision
 (MeanBP carries no information on U beyond SysBP and DiaBP). The oracle twin
 draws U from this posterior and runs the dynamics forward: an exact sampler of
-the interventional distribution, hence an interventionally correct twin.
+the interventional distribution, hence an interventionally correct twin. The truncation of
+X_0 leaves p(U | x_0) as it is for every x_0 inside the ranges (the truncation depends on x_0
+alone), and the oracle clips its hours t >= 1 as the world does, so it stays exact.
 """
 
 from __future__ import annotations
@@ -43,7 +50,16 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import noise
-from twinfalsify.schema import DOSES, FEATURES, IV_FLUID, STAY_ID, T_MAX, TIME, VASOPRESSOR
+from twinfalsify.schema import (
+    DOSES,
+    FEATURE_TABLE,
+    FEATURES,
+    IV_FLUID,
+    STAY_ID,
+    T_MAX,
+    TIME,
+    VASOPRESSOR,
+)
 
 # Physiological features simulated directly (MeanBP is derived).
 DYNAMIC = (
@@ -73,6 +89,9 @@ _PARAMS = {
 
 _IDX = {f: i for i, f in enumerate(FEATURES)}
 _DYN_IDX = [_IDX[k] for k in DYNAMIC]
+_LO = np.array([f.lo for f in FEATURE_TABLE])
+_HI = np.array([f.hi for f in FEATURE_TABLE])
+_MAX_REDRAWS = 100  # rounds of drawing X_0 again (each round keeps ~1 - 1e-5 of the rows)
 
 
 def _features(x0: pd.DataFrame | np.ndarray) -> np.ndarray:
@@ -170,8 +189,10 @@ class SyntheticWorld:
             + s * eps
         )
 
-    def features_frame(self, demo: np.ndarray, z: np.ndarray, meanbp_eps: np.ndarray) -> np.ndarray:
-        """Assemble (n, len(FEATURES)) in schema order from demographics and working z."""
+    def features_frame(self, demo: np.ndarray, z: np.ndarray, meanbp_eps: np.ndarray,
+                       *, clip: bool = True) -> np.ndarray:
+        """Assemble (n, len(FEATURES)) in schema order from demographics and working z,
+        each value clipped to its plausible range (``clip``; module doc)."""
         x = self.from_working(z)
         col = {k: j for j, k in enumerate(DYNAMIC)}
         out = np.empty((len(z), len(FEATURES)))
@@ -184,7 +205,26 @@ class SyntheticWorld:
                 ) / 3 + self.meanbp_noise * meanbp_eps
             else:
                 out[:, j] = x[:, col[name]]
-        return out
+        return np.clip(out, _LO, _HI) if clip else out
+
+    def _plausible_x0(self, rng: np.random.Generator, demo: np.ndarray, m: np.ndarray,
+                      u: np.ndarray, z: np.ndarray, eps: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(U, z_0, MeanBP noise) with the rows whose X_0 leaves a plausible range drawn
+        again until none does: X_0 from its law truncated to the ranges (module doc). No
+        draw is made when every row is inside, so such a world is unchanged."""
+        b0, s0 = self._vec(2), self._vec(1)
+        for _ in range(_MAX_REDRAWS):
+            x = self.features_frame(demo, z, eps, clip=False)
+            bad = ((x < _LO) | (x > _HI)).any(axis=1)
+            if not bad.any():
+                return u, z, eps
+            k = int(bad.sum())
+            u[bad] = rng.standard_normal(k)
+            z[bad] = m[bad] + b0 * u[bad, None] + s0 * rng.standard_normal((k, len(DYNAMIC)))
+            eps[bad] = rng.standard_normal(k)
+        raise RuntimeError(f"synthetic world: X_0 of {int(bad.sum())} stay(s) still outside "
+                           f"the plausible ranges after {_MAX_REDRAWS} draws")
 
     # -- observational data -------------------------------------------------
     def sample_observational(
@@ -207,7 +247,10 @@ class SyntheticWorld:
         rows = []
         iv_prev, vaso_prev = np.zeros(n), np.zeros(n)
         for t in range(t_max + 1):
-            x = self.features_frame(demo, z, rng.standard_normal(n))
+            eps_bp = rng.standard_normal(n)
+            if t == 0:
+                u, z, eps_bp = self._plausible_x0(rng, demo, m, u, z, eps_bp)
+            x = self.features_frame(demo, z, eps_bp)
             iv, vaso = self._policy(rng, x, u, iv_prev, vaso_prev)
             if fixed_doses is not None and t < t_max:
                 iv, vaso = np.full(n, fixed_doses[t, 0]), np.full(n, fixed_doses[t, 1])
