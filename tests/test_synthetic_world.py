@@ -71,14 +71,19 @@ def test_oracle_matches_a_randomised_trial_in_the_world():
     x0 = pd.DataFrame(x[:, 0, :], columns=list(FEATURES))
     seeds = noise.combine(np.uint64(3), np.arange(len(x0), dtype=np.uint64))
     sim = WORLD.simulate_interventional(x0, np.broadcast_to(doses, (len(x0), 4, 2)).copy(), seeds)
-    for k in ("SysBP", "HR", "Chloride", "HCO3", "Glucose", "MeanBP"):
+    _assert_same_law(x, sim, ("SysBP", "HR", "Chloride", "HCO3", "Glucose", "MeanBP"))
+
+
+def _assert_same_law(x: np.ndarray, sim: np.ndarray, features: tuple[str, ...]) -> None:
+    """Trial hours x[:, t] and oracle hours sim[:, t - 1] (t = 1, 4) agree in mean, sd and,
+    conditionally on X_0 and not just marginally, in their covariance with the initial state."""
+    for k in features:
         j = FEATURES.index(k)
         for t in (1, 4):
             a, b = x[:, t, j], sim[:, t - 1, j]
             se = np.sqrt(a.var() / len(a) + b.var() / len(b))
             assert abs(a.mean() - b.mean()) < 4 * se, (k, t)
             assert b.std() == pytest.approx(a.std(), rel=0.04), (k, t)
-            # conditional on X_0, not just marginally: same regression on the initial state
             ca = np.cov(a, x[:, 0, j])[0, 1]
             cb = np.cov(b, x[:, 0, j])[0, 1]
             assert cb == pytest.approx(ca, rel=0.1, abs=0.05 * a.var()), (k, t)
@@ -176,12 +181,4 @@ def test_oracle_stays_exact_when_ranges_truncate_x0_and_clip_later_hours(monkeyp
     sim = world.simulate_interventional(x0, np.broadcast_to(doses, (len(x0), 4, 2)).copy(),
                                         seeds)
     assert (sim >= lo).all() and (sim <= hi).all()
-    for k in ("HCO3", "paCO2", "SysBP"):
-        j = FEATURES.index(k)
-        for t in (1, 4):
-            a, b = x[:, t, j], sim[:, t - 1, j]
-            se = np.sqrt(a.var() / len(a) + b.var() / len(b))
-            assert abs(a.mean() - b.mean()) < 4 * se, (k, t)
-            assert b.std() == pytest.approx(a.std(), rel=0.04), (k, t)
-            ca, cb = np.cov(a, x[:, 0, j])[0, 1], np.cov(b, x[:, 0, j])[0, 1]
-            assert cb == pytest.approx(ca, rel=0.1, abs=0.05 * a.var()), (k, t)
+    _assert_same_law(x, sim, ("HCO3", "paCO2", "SysBP"))
