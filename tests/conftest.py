@@ -51,6 +51,19 @@ def run_snakemake(workdir: Path, config: Path, *args: str, timeout: int = 900):
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
 
 
+def mimic_study_config(study: str, kind: str, path: str | None) -> dict:
+    """A study config reading a small MIMIC folder (``kind`` mimic3 or mimic4; ``path`` None:
+    the environment variable) with one fitted twin and Hoeffding: enough for the
+    extraction rule and the small rules after it."""
+    return {"study": study, "seed": 1,
+            "source": {"kind": kind, kind: {"path": path, "threads": 1}},
+            "split": {"d0_fraction": 0.4}, "design": {"min_support": 1},
+            "twin_runs": {"runs_per_sequence": None, "n_shards": 1},
+            "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
+            "testing": {"alpha": 0.05, "correction": "holm",
+                        "methods": {"hoeffding": {"factor": 2}}}}
+
+
 @pytest.fixture(scope="session")
 def test_study(tmp_path_factory):
     """The tiny study of config/test.yaml, run once per session with every output:

@@ -18,7 +18,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import shared_dir
+from conftest import mimic_study_config, shared_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -108,13 +108,7 @@ def test_another_mimic3_dir_reruns_the_extraction(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     shutil.copytree(FIX, a)
     shutil.copytree(FIX, b)
-    cfg = {"study": "fp", "seed": 1,
-           "source": {"kind": "mimic3", "mimic3": {"path": None, "threads": 1}},
-           "split": {"d0_fraction": 0.4}, "design": {"min_support": 1},
-           "twin_runs": {"runs_per_sequence": None, "n_shards": 1},
-           "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
-           "testing": {"alpha": 0.05, "correction": "holm",
-                       "methods": {"hoeffding": {"factor": 2}}}}
+    cfg = mimic_study_config("fp", "mimic3", None)
     config = tmp_path / "fp.yaml"
     config.write_text(yaml.safe_dump(cfg))
     target = "results/fp/trajectories.parquet"

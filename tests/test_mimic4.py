@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import run_snakemake, shared_dir
+from conftest import mimic_study_config, run_snakemake, shared_dir
 
 from twinfalsify import schema
 from twinfalsify.provenance import code_scope
@@ -247,13 +247,7 @@ def test_a_mimic4_study_counts_the_mimic3_cohort_code_as_its_own():
 
 @pytest.mark.slow
 def test_a_mimic4_study_extracts_through_the_workflow(pair, tmp_path):
-    cfg = {"study": "m4", "seed": 1,
-           "source": {"kind": "mimic4", "mimic4": {"path": str(pair / "mimic4"), "threads": 1}},
-           "split": {"d0_fraction": 0.4}, "design": {"min_support": 1},
-           "twin_runs": {"runs_per_sequence": None, "n_shards": 1},
-           "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
-           "testing": {"alpha": 0.05, "correction": "holm",
-                       "methods": {"hoeffding": {"factor": 2}}}}
+    cfg = mimic_study_config("m4", "mimic4", str(pair / "mimic4"))
     config = tmp_path / "m4.yaml"
     config.write_text(yaml.safe_dump(cfg))
     target = "results/m4/trajectories.parquet"

@@ -69,23 +69,23 @@ DIFFERENCES: tuple[tuple[str, str], ...] = (
 )
 
 
-def _select(view: str) -> str:
-    cols = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}[view]
-    extra = [c for c in RENAMED.get(view, {}) if c not in cols]
+def _view_columns(view: str) -> dict[str, str]:
+    """MIMIC-III column -> the MIMIC-IV expression giving it, for every column the view has:
+    the extraction's (REQUIRED_COLUMNS / OPTIONAL_COLUMNS), then the extra ones of RENAMED."""
     ren = RENAMED.get(view, {})
-    return ", ".join(f'{ren.get(c, c.lower())} AS "{c}"' for c in (*cols, *extra))
+    cols = (*{**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}[view], *ren)
+    return {c: ren.get(c, c.lower()) for c in dict.fromkeys(cols)}
+
+
+def _select(view: str) -> str:
+    return ", ".join(f'{expr} AS "{col}"' for col, expr in _view_columns(view).items())
 
 
 def _file_columns(view: str) -> tuple[str, ...]:
-    """The MIMIC-IV columns the view reads (checked when the file is opened)."""
-    cols = {**REQUIRED_COLUMNS, **OPTIONAL_COLUMNS}[view]
-    ren = RENAMED.get(view, {})
-    out = []
-    for c in (*cols, *(c for c in ren if c not in cols)):
-        expr = ren.get(c, c.lower())
-        if expr.isidentifier():
-            out.append(expr)
-    return tuple(dict.fromkeys(out))
+    """The MIMIC-IV columns the view reads (checked when the file is opened): the
+    expressions that are plain column names."""
+    exprs = _view_columns(view).values()
+    return tuple(dict.fromkeys(e for e in exprs if e.isidentifier()))
 
 
 MIMIC4 = Layout(
