@@ -8,7 +8,7 @@ CONFIG ?= config/config.yaml
 STUDY = $(shell sed -n 's/^study: *\([A-Za-z0-9._-]*\).*/\1/p' $(CONFIG))
 STAMP := $(VENV)/.installed
 
-.PHONY: setup reproduce test lint report docs clean
+.PHONY: setup reproduce test test-fast lint report docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,9 +22,14 @@ setup: $(STAMP)
 reproduce: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --rerun-triggers mtime params input
 
-## Set up and run the test suite.
+## Set up and run the whole test suite, on two workers (pytest-xdist; a test file runs whole
+## on one worker).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+## The inner loop: the unit tests only (no Snakemake study, no engine), on two workers.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 ## Build the study of CONFIG (default: the default study) and its browsable report:
 ## results/<study>/report.html, one self-contained file with every figure and caption.

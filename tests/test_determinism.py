@@ -11,14 +11,14 @@ equal too.
 from __future__ import annotations
 
 import pytest
-from slurm.runs import assert_same_results, reference_run, results_dir, results_files
+from slurm.runs import assert_same_results, results_dir, results_files
 
 pytestmark = pytest.mark.slow
 
 
-def test_cores_1_and_cores_2_give_identical_results():
-    w1, c1 = reference_run(cores=1)
-    w2, c2 = reference_run(cores=2)
+def test_cores_1_and_cores_2_give_identical_results(reference_runs):
+    w1, c1 = reference_runs(1)
+    w2, c2 = reference_runs(2)
     assert_same_results(results_files(w1, c1), results_files(w2, c2))
     # not only the end result: every intermediate table is identical too
     for name in ("trajectories", "d0", "d", "design/hypotheses", "observational/counts"):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import copy_repo
 from fakes import FAULTY_TWIN
 from test_bad_inputs import ENV, ROOT, _inputs
 
@@ -259,107 +258,6 @@ def test_fingerprint_covers_exactly_the_modules_a_script_reaches(tmp_path):
 
 
 # ---- what reruns (snakemake -n on a finished small study) ---------------------------------
-
-
-def _rule_scripts(repo) -> dict[str, str]:
-    """rule name -> the script it runs, read from workflow/rules/*.smk."""
-    import re
-
-    out = {}
-    for smk in (repo / "workflow" / "rules").glob("*.smk"):
-        for block in re.split(r"\n(?=rule \w+:)", smk.read_text()):
-            m = re.match(r"rule (\w+):", block)
-            s = re.search(r'scripts/(\w+)\.py', block)
-            if m and s:
-                out[m.group(1)] = s.group(1)
-    return out
-
-
-def _dry_run(work, config, repo):
-    """{rule: reason} of the jobs `snakemake -n` would run (empty: nothing to do)."""
-    import re
-    import subprocess
-    import sys
-
-    done = subprocess.run(
-        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
-         str(work), "--configfile", str(config), "-n", "--cores", "2"],
-        capture_output=True, text=True, timeout=300,
-        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src")},
-    )
-    out = done.stdout + done.stderr
-    assert done.returncode == 0, out[-3000:]
-    jobs: dict[str, set[str]] = {}
-    # grouped jobs (the twin shards) are listed indented under "Group job twin_shards"
-    for m in re.finditer(r"^ *(?:local)?rule (\w+):\n(?: +.*\n)*? +reason: (.*)$", out, re.M):
-        jobs.setdefault(m.group(1), set()).add(m.group(2))
-    return jobs
-
-
-@pytest.mark.slow
-def test_what_reruns_after_which_change(tmp_path):
-    """On a finished small study: execution-only twin keys rerun nothing; a library edit
-    reruns exactly the rules whose scripts reach the edited module (params changed) and
-    what is downstream of them (inputs updated); a study parameter reruns its consumers."""
-    import re
-
-    import yaml
-
-    repo = tmp_path / "repo"
-    copy_repo(repo)
-    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
-    cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
-                              "timeout_s": 60, "retries": 1}
-    config = tmp_path / "study.yaml"
-    config.write_text(yaml.safe_dump(cfg))
-    work = tmp_path / "work"
-    import subprocess
-    import sys
-
-    done = subprocess.run(
-        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
-         str(work), "--configfile", str(config), "--cores", "2"],
-        capture_output=True, text=True, timeout=900,
-        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src"), "MPLBACKEND": "Agg"},
-    )
-    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
-    assert _dry_run(work, config, repo) == {}
-
-    # execution-only keys of a served twin: no shard, no job at all
-    cfg["twins"]["oracle"].update(workers=2, timeout_s=90, retries=0, batch_size=7,
-                                  fail_fast_runs=5, max_restarts=3)
-    config.write_text(yaml.safe_dump(cfg))
-    assert _dry_run(work, config, repo) == {}
-
-    # a library edit: exactly the rules whose scripts reach bounds.py, by params
-    bounds = repo / "src" / "twinfalsify" / "bounds.py"
-    bounds.write_text(bounds.read_text() + "\n# a fix\n")
-    jobs = _dry_run(work, config, repo)
-    reach = {rule for rule, script in _rule_scripts(repo).items()
-             if "twinfalsify.bounds" in provenance.script_modules(
-                 repo / "scripts" / f"{script}.py", repo / "src")}
-    ran = set(re.findall(r"^ *(?:local)?rule (\w+):", done.stdout + done.stderr, re.M))
-    by_params = {r for r, why in jobs.items() if any("Params have changed" in w for w in why)}
-    # Snakemake gives one reason per job: a job whose inputs an earlier rerun job rewrites
-    # says so, even if its params changed too; so: every rule of the study that reaches
-    # bounds.py reruns, a rerun for changed params is always one of them, and every other
-    # rerun is downstream of one of them
-    assert reach & ran <= set(jobs), (reach & ran) - set(jobs)
-    assert by_params and by_params <= reach, by_params
-    others = set(jobs) - reach
-    assert all(any("updated by another job" in w for w in jobs[r]) for r in others), jobs
-    for rule in ("trajectories", "split", "design", "twin_plan", "twin_shard", "twin_runs"):
-        assert rule in ran and rule not in jobs, (rule, jobs.get(rule))
-    bounds.write_text(bounds.read_text().removesuffix("\n# a fix\n"))
-    assert _dry_run(work, config, repo) == {}  # back as it was: nothing to do
-
-    # a builtin twin's module: both twins' shards (and what follows), not the design stage
-    builtin = repo / "src" / "twinfalsify" / "twins" / "builtin.py"
-    builtin.write_text(builtin.read_text() + "\n# a fix\n")
-    jobs = _dry_run(work, config, repo)
-    assert "twin_shard" in jobs and any("Params have changed" in w for w in jobs["twin_shard"])
-    for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
-        assert rule not in jobs, (rule, jobs.get(rule))
 
 
 # ---- the workflow refuses at parse time, writing nothing ----------------------------------

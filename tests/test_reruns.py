@@ -10,7 +10,12 @@ the first X_0 its shards schedule, with ``fail_fast_runs: 3``:
 - an edit of the MIMIC-III source package or of an unused test method (betting.py) reruns
   nothing; an edit of the method in use (hoeffding.py) still reruns the tests;
 - a rule script rewritten with the same bytes reruns nothing under ``--rerun-triggers mtime
-  params input`` (the profiles' and make's setting); new bytes rerun its rule.
+  params input`` (the profiles' and make's setting); new bytes rerun its rule;
+- execution-only keys of a served twin rerun nothing; a library edit reruns exactly the rules
+  whose scripts reach the edited module and what follows them.
+
+The tests share one study and edit its repository copy in place, each restoring what it
+edits: they run in order on one worker (``conftest``: a module fixture groups its module).
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ import yaml
 from conftest import copy_repo
 from fakes import FAULTY_TWIN
 from test_bad_inputs import ROOT
+
+from twinfalsify import provenance
 
 pytestmark = pytest.mark.slow
 
@@ -68,10 +75,13 @@ def study(tmp_path_factory):
     shutil.copy(FAULTY_TWIN[1], work / "twin" / "faulty_twin.py")
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     cfg["twin_runs"].update(runs_per_sequence=60, n_shards=2)
+    cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
+                              "timeout_s": 60, "retries": 1}
     config = tmp / "study.yaml"
     config.write_text(yaml.safe_dump(cfg))
     done = _snakemake(repo, work, config, f"results/{cfg['study']}/twin_plan.json")
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    log = done.stdout + done.stderr
     plan = TwinPlan.from_json(yaml.safe_load(
         (work / "results" / cfg["study"] / "twin_plan.json").read_text()))
     seeds = plan.run_seeds()
@@ -83,6 +93,7 @@ def study(tmp_path_factory):
     config.write_text(yaml.safe_dump(cfg))
     done = _snakemake(repo, work, config)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    (tmp / "build.log").write_text(log + done.stdout + done.stderr)  # every rule that ran
     return repo, work, config, cfg, patient
 
 
@@ -158,3 +169,101 @@ def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
         script.write_bytes(text)
         os.utime(script, ns=(st.st_atime_ns, st.st_mtime_ns))
     assert dry_run(repo, work, config) == {}
+
+
+# ---- which edits rerun what -------------------------------------------------------------
+
+
+def _rule_scripts(repo) -> dict[str, str]:
+    """rule name -> the script it runs, read from workflow/rules/*.smk."""
+    import re
+
+    out = {}
+    for smk in (repo / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"\n(?=rule \w+:)", smk.read_text()):
+            m = re.match(r"rule (\w+):", block)
+            s = re.search(r'scripts/(\w+)\.py', block)
+            if m and s:
+                out[m.group(1)] = s.group(1)
+    return out
+
+
+def _dry_run(work, config, repo):
+    """{rule: reason} of the jobs `snakemake -n` would run (empty: nothing to do)."""
+    import re
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+         str(work), "--configfile", str(config), "-n", "--cores", "2"],
+        capture_output=True, text=True, timeout=300,
+        env={**__import__("os").environ, "PYTHONPATH": str(repo / "src")},
+    )
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    jobs: dict[str, set[str]] = {}
+    # grouped jobs (the twin shards) are listed indented under "Group job twin_shards"
+    for m in re.finditer(r"^ *(?:local)?rule (\w+):\n(?: +.*\n)*? +reason: (.*)$", out, re.M):
+        jobs.setdefault(m.group(1), set()).add(m.group(2))
+    return jobs
+
+
+def test_what_reruns_after_which_change(study):
+    """On the finished study: execution-only keys of its served twin rerun nothing; a library
+    edit reruns exactly the rules whose scripts reach the edited module (params changed) and
+    what is downstream of them (inputs updated); a builtin twin's module reruns the shards."""
+    import re
+
+    repo, work, config, cfg, _ = study
+    build_log = (config.parent / "build.log").read_text()
+    assert _dry_run(work, config, repo) == {}
+    original = config.read_text()
+
+    # execution-only keys of a served twin: no shard, no job at all
+    changed = {**cfg, "twins": {**cfg["twins"], "oracle": {
+        **cfg["twins"]["oracle"], "workers": 2, "timeout_s": 90, "retries": 0, "batch_size": 7,
+        "fail_fast_runs": 5, "max_restarts": 3}}}
+    config.write_text(yaml.safe_dump(changed))
+    try:
+        assert _dry_run(work, config, repo) == {}
+    finally:
+        config.write_text(original)
+
+    # a library edit: exactly the rules whose scripts reach bounds.py, by params
+    bounds = repo / "src" / "twinfalsify" / "bounds.py"
+    text = bounds.read_text()
+    bounds.write_text(text + "\n# a fix\n")
+    try:
+        jobs = _dry_run(work, config, repo)
+    finally:
+        bounds.write_text(text)
+    reach = {rule for rule, script in _rule_scripts(repo).items()
+             if "twinfalsify.bounds" in provenance.script_modules(
+                 repo / "scripts" / f"{script}.py", repo / "src")}
+    ran = set(re.findall(r"^ *(?:local)?rule (\w+):", build_log, re.M))
+    by_params = {r for r, why in jobs.items() if any("Params have changed" in w for w in why)}
+    # Snakemake gives one reason per job: a job whose inputs an earlier rerun job rewrites
+    # says so, even if its params changed too; so: every rule of the study that reaches
+    # bounds.py reruns, a rerun for changed params is always one of them, and every other
+    # rerun is downstream of one of them
+    assert reach & ran <= set(jobs), (reach & ran) - set(jobs)
+    assert by_params and by_params <= reach, by_params
+    others = set(jobs) - reach
+    assert all(any("updated by another job" in w for w in jobs[r]) for r in others), jobs
+    for rule in ("trajectories", "split", "design", "twin_plan", "twin_shard", "twin_runs"):
+        assert rule in ran and rule not in jobs, (rule, jobs.get(rule))
+    assert _dry_run(work, config, repo) == {}  # back as it was: nothing to do
+
+    # a builtin twin's module: both twins' shards (and what follows), not the design stage
+    builtin = repo / "src" / "twinfalsify" / "twins" / "builtin.py"
+    text = builtin.read_text()
+    builtin.write_text(text + "\n# a fix\n")
+    try:
+        jobs = _dry_run(work, config, repo)
+    finally:
+        builtin.write_text(text)
+    assert "twin_shard" in jobs and any("Params have changed" in w for w in jobs["twin_shard"])
+    for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
+        assert rule not in jobs, (rule, jobs.get(rule))
+    assert _dry_run(work, config, repo) == {}

@@ -26,7 +26,6 @@ from slurm.runs import (
     ROOT,
     assert_same_results,
     new_study,
-    reference_run,
     results_dir,
     results_files,
     run,
@@ -58,6 +57,10 @@ def _shards(work: Path, r: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _targets(work: Path, config: Path) -> list[str]:
+    return [str(p.relative_to(work)) for p in results_files(work, config).values()]
+
+
 def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
@@ -77,7 +80,8 @@ def _interrupt(
     r = results_dir(work, config)
     with log.open("wb") as sink:
         proc = subprocess.Popen(
-            snakemake_cmd(work, config, "--cores", "1"),
+            # only what is compared: tables and figures would add minutes and check nothing
+            snakemake_cmd(work, config, "--cores", "1", *_targets(work, config)),
             stdout=sink,
             stderr=subprocess.STDOUT,
             env=run_env(),
@@ -114,7 +118,7 @@ def _interrupt(
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
-def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path):
+def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path, reference_runs):
     work = tmp_path / "study"
     config = new_study(work)
     before = _interrupt(work, config, sig, tmp_path / "interrupted.log")
@@ -122,13 +126,13 @@ def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path):
     traj_stat = traj.stat().st_mtime_ns
 
     if sig == signal.SIGKILL:
-        locked = run(work, config, "--workflow-profile", PROFILE)
+        locked = run(work, config, "--workflow-profile", PROFILE, *_targets(work, config))
         assert locked.returncode != 0
         assert "cannot be locked" in locked.stderr + locked.stdout
         unlock = run(work, config, "--unlock")
         assert unlock.returncode == 0, unlock.stderr[-2000:]
 
-    resumed = run(work, config, "--workflow-profile", PROFILE)
+    resumed = run(work, config, "--workflow-profile", PROFILE, *_targets(work, config))
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     after = _shards(work, results_dir(work, config))
     assert len(after) == N_SHARDS
@@ -139,5 +143,5 @@ def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path):
     n_shard_jobs = (resumed.stdout + resumed.stderr).count("rule twin_shard:")
     assert n_shard_jobs == N_SHARDS - len(before)
 
-    ref_work, ref_config = reference_run(cores=1)
+    ref_work, ref_config = reference_runs(1)
     assert_same_results(results_files(work, config), results_files(ref_work, ref_config))

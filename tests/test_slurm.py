@@ -25,7 +25,6 @@ from slurm.runs import (
     ROOT,
     assert_same_results,
     new_study,
-    reference_run,
     results_files,
     run,
 )
@@ -103,7 +102,7 @@ def slurm_profile(dest: Path, partition: str) -> Path:
     return dest
 
 
-def test_study_runs_through_slurm_and_equals_a_local_run(cluster, tmp_path):
+def test_study_runs_through_slurm_and_equals_a_local_run(cluster, tmp_path, reference_runs):
     work = tmp_path / "slurm-study"
     config = new_study(work)
     profile = slurm_profile(tmp_path / "profile", cluster.partition)
@@ -132,7 +131,7 @@ def test_study_runs_through_slurm_and_equals_a_local_run(cluster, tmp_path):
     overhead = wall - sum(_seconds(j) for j in jobs)
     print(f"Slurm study: {wall:.0f} s wall, {len(jobs)} Slurm jobs, {overhead:.0f} s overhead")
 
-    local_work, local_config = reference_run(cores=2)
+    local_work, local_config = reference_runs(2)
     assert_same_results(results_files(work, config), results_files(local_work, local_config))
 
 

@@ -184,6 +184,9 @@ def test_study_on_the_exported_table_equals_the_synthetic_study_byte_for_byte(
     tables, which carry the table's subject_id column and are otherwise equal."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")  # PDFs carry no creation time
     base = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    # fewer stays and runs than config/test.yaml: every rule still runs, on less data
+    base["source"]["synthetic"]["n_stays"] = 800
+    base["twin_runs"]["runs_per_sequence"] = 100
     base["twins"] = {"fitted": {"kind": "fitted"},
                      "served": {"kind": "fitted", "protocol": True, "workers": 1}}
     table = tmp_path / "table" / "trajectories.csv"

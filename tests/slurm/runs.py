@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import atexit
-import functools
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import pandas as pd
@@ -84,16 +80,12 @@ def assert_same_results(a: dict[str, Path], b: dict[str, Path]) -> None:
         assert a[twin].read_bytes() == b[twin].read_bytes(), f"{twin}: same table, other bytes"
 
 
-@functools.cache
-def reference_run(cores: int = 1) -> tuple[Path, Path]:
-    """One uninterrupted run of the small study, shared by the resume and determinism tests."""
-    work = Path(tempfile.mkdtemp(prefix=f"tf-reference-c{cores}-"))
-    atexit.register(shutil.rmtree, work, ignore_errors=True)
+def build_reference_run(work: Path, cores: int) -> None:
+    """One uninterrupted run of the small study in ``work`` (the determinism, resume and
+    Slurm tests compare against it; ``conftest.reference_runs`` builds it once per run)."""
     config = new_study(work)
     # only what is compared (results.parquet): tables and figures would add minutes to CI
     targets = [str(p.relative_to(work)) for p in results_files(work, config).values()]
     done = run(work, config, "--cores", str(cores), *targets)
     if done.returncode != 0:
-        shutil.rmtree(work, ignore_errors=True)
         raise AssertionError(f"reference run failed:\n{done.stderr[-3000:]}")
-    return work, config
