@@ -152,7 +152,52 @@ LONG_FIRST = (
 )
 
 
+# Tests not marked `slow` in their file that still take more than about 2 CPU-seconds (from
+# `--cpu-report`): marked slow here, so `make test-fast` (`-m "not slow"`) stays a quick inner
+# loop; `make test` runs them all.
+SLOW_UNIT_TESTS = (
+    "test_adaptive.py::test_a_budget_too_small_to_reject_spends_no_twin_time_and_says_so",
+    "test_adaptive.py::test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes",
+    "test_adaptive.py::test_depth_truncation_drops_only_hours_no_hypothesis_can_use",
+    "test_adaptive.py::test_product_rule_shard_warns_it_has_no_validity_proof",
+    "test_breaker.py::test_one_failing_patient_does_not_stop_the_shard",
+    "test_calibration.py::test_run_adaptive_equals_adaptive_test",
+    "test_calibration.py::test_tiny_run_tables_and_known_answers",
+    "test_failfast.py::test_breaker_leaves_a_partly_failing_twin_alone",
+    "test_failfast.py::test_crashing_twin_stops_after_max_restarts",
+    "test_failfast.py::test_stdout_logging_twin_stops_within_k_runs",
+    "test_inference_product.py::test_product_futility_never_loses_a_rejection_and_rejects_more_than_union",
+    "test_mimic3_causality.py::test_fixture_values_never_see_later_rows",
+    "test_mimic3_staging.py::test_staged_extraction_equals_unstaged_on_the_fixture",
+    "test_mimic3_synth.py::test_extraction_gives_the_cohort_and_values_built_in",
+    "test_mimic3_synth.py::test_parquet_extracts_like_csv",
+    "test_mimic3_synth.py::test_tables_have_full_mimic_proportions",
+    "test_mimic3_workflow.py::test_another_mimic3_dir_reruns_the_extraction",
+    "test_mimic4.py::test_mimic4_gives_the_mimic3_cohort_on_the_demo_metavision_stays",
+    "test_record_replay.py::test_replay_equals_the_recorded_runs",
+    "test_sequential.py::test_conservative_failures_keep_p_values_valid_when_failures_depend_on_the_outcome",
+    "test_sequential.py::test_futility_never_loses_a_rejection_and_early_rejection_matches_p",
+    "test_sequential.py::test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary",
+    "test_study_synthetic.py::test_more_bias_more_rejections",
+    "test_study_synthetic.py::test_oracle_is_not_rejected",
+    "test_synthetic_world.py::test_true_interventional_mean_lies_within_bounds",
+    "test_twin_batch.py::test_batches_are_sent_and_results_identical",
+    "test_twin_batch.py::test_mixed_faults_in_batches_match_unbatched",
+    "test_twin_batch.py::test_served_builtin_batches_bit_identical_to_in_process",
+    "test_twin_check.py::test_command_line_exit_codes_and_table",
+    "test_twin_integration.py::test_protocol_twin_is_bit_identical_to_in_process",
+    "test_twin_runner.py::test_mixed_faults_every_run_accounted_once",
+    "test_twin_runner.py::test_retry_then_success",
+    "test_twin_runner.py::test_same_results_for_one_or_two_workers_and_any_input_order",
+)
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m "not slow"` deselects
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.nodeid.removeprefix("tests/").split("[")[0] in SLOW_UNIT_TESTS:
+            item.add_marker(pytest.mark.slow)
+
     def rank(item: pytest.Item) -> int:
         name = item.path.name
         return LONG_FIRST.index(name) if name in LONG_FIRST else len(LONG_FIRST)
