@@ -19,9 +19,9 @@ wall time of one test run.
 renumberings of D's stays (a random bijection of the ids: D0, hypotheses and values
 unchanged) and under S - 1 other order seeds (the seed keying the data order and the twin's
 X_0 draw); prints per twin the Holm rejections and the decisions that differ from the
-study as configured (a (hypothesis, side) rejected in one and not the other). A stochastic
-twin's noise streams are keyed by stay id (the twin's own randomness), so under a
-renumbering only a deterministic twin sees exactly the same runs.
+study as configured (a (hypothesis, side) rejected in one and not the other). A run's noise
+stream is keyed by its position in the content-keyed X_0 list, so under a renumbering a
+stochastic twin sees the same runs too.
 """
 
 from __future__ import annotations
