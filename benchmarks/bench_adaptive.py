@@ -41,7 +41,7 @@ from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, no
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import shard_hypotheses
 from twinfalsify.runs.registry import make_twin
-from twinfalsify.schema import FEATURES, STAY_ID, to_array
+from twinfalsify.schema import FEATURES, STAY_ID, TIME, to_array
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
 
@@ -57,8 +57,14 @@ class Study:
     ctx: dict
 
 
-def build(cfg: dict, seed: int) -> Study:
-    """The workflow's stages in-process for a synthetic study config."""
+def build(cfg: dict, seed: int, order_seed: int | None = None,
+          renumber: int | None = None) -> Study:
+    """The workflow's stages in-process for a synthetic study config.
+
+    ``order_seed``: the seed keying the data order and the twin's X_0 draw (default ``seed``,
+    as the workflow); ``renumber``: give D's stays new ids, a random bijection seeded by it
+    (the same data, another numbering: D0 and the hypotheses unchanged).
+    """
     if cfg["source"]["kind"] != "synthetic":
         sys.exit("bench_adaptive: only the synthetic source is supported in-process")
     traj = generate(cfg["source"].get("synthetic"), seed=seed)
@@ -71,12 +77,20 @@ def build(cfg: dict, seed: int) -> Study:
         min_support=int(dc.get("min_support", 10)),
         kinds=tuple(dc.get("kinds", ("causal", "manski"))),
     )
+    if renumber is not None:
+        old = d[STAY_ID].unique()
+        new = np.random.default_rng(renumber).choice(10**8, len(old), replace=False) + 1
+        d = d.assign(**{STAY_ID: d[STAY_ID].map(dict(zip(old, new, strict=True)))})
+        d = d.sort_values([STAY_ID, TIME]).reset_index(drop=True)
+    oseed = seed if order_seed is None else int(order_seed)
     obs = bounds.observational_side(
-        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states, order_seed=oseed
     )
     runs_cfg = cfg["twin_runs"]
-    plan = tp.plan_twin_runs(hyps, d[STAY_ID].unique(), runs_cfg.get("runs_per_sequence", 5000),
-                             int(runs_cfg.get("n_shards", 4)), seed)
+    ids = d[STAY_ID].unique()
+    plan = tp.plan_twin_runs(hyps, ids, runs_cfg.get("runs_per_sequence", 5000),
+                             int(runs_cfg.get("n_shards", 4)), oseed,
+                             x0=tp.x0_frame(d, ids.tolist())[list(FEATURES)].to_numpy(float))
     tmp = Path(tempfile.mkdtemp())
     d0.to_parquet(tmp / "d0.parquet")
     return Study(hyps, obs, states, actions, plan, tp.x0_frame(d, plan.x0_stay_ids),
@@ -181,7 +195,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--bias-levels", type=float, nargs="+", default=[0.0, 5.0, 10.0, 25.0])
     ap.add_argument("--curtail", type=float, nargs="*", default=[],
                     help="also run opt-in curtailment at these epsilons")
-    ap.add_argument("--combine", choices=["union", "product"], default="union",
+    ap.add_argument("--combine", choices=["union"], default="union",
                     help="how the adaptive test combines the two capitals")
     args = ap.parse_args(argv)
     cfg = yaml.safe_load(Path(args.config).read_text())

@@ -14,6 +14,14 @@ pooled in one family), decisions that flip across the seeds (a
 (hypothesis, side) rejected under some seeds but not others), the seed-to-seed p ratio
 max/min (median and 90th percentile over hypotheses with p < 1 under every seed) and the
 wall time of one test run.
+
+``--layouts R S``: instead, the default test (``betting: {}``) on the same data under R
+renumberings of D's stays (a random bijection of the ids: D0, hypotheses and values
+unchanged) and under S - 1 other order seeds (the seed keying the data order and the twin's
+X_0 draw); prints per twin the Holm rejections and the decisions that differ from the
+study as configured (a (hypothesis, side) rejected in one and not the other). A run's noise
+stream is keyed by its position in the content-keyed X_0 list, so under a renumbering a
+stochastic twin sees the same runs too.
 """
 
 from __future__ import annotations
@@ -45,10 +53,14 @@ def main() -> None:
     ap.add_argument("--bets", nargs="+",
                     default=["plugin", "mixture", "plugin:16", "plugin:1:seed", "plugin:16:seed"])
     ap.add_argument("--twins", nargs="+", default=None)
+    ap.add_argument("--layouts", type=int, nargs=2, default=None, metavar=("R", "S"))
     args = ap.parse_args()
     cfg = yaml.safe_load(Path(args.config).read_text())
     seed = int(cfg["seed"])
     testing = cfg["testing"]
+    if args.layouts:
+        layouts(cfg, seed, testing, *args.layouts, args.twins)
+        return
     st = build(cfg, seed)
     print("| twin | bets | rejections per seed | causal / Manski | pooled kinds | "
           "flipped decisions | p ratio median | p ratio 90th | s per run |")
@@ -91,6 +103,45 @@ def main() -> None:
             print(f"| {name} | {k} | {counts.min()}-{counts.max()} | {by_kind} | {pooled} | "
                   f"{flips} of {rej.shape[1]} | "
                   f"{med} | {q90} | {np.mean(secs):.1f} |", flush=True)
+
+
+def _decisions(cfg: dict, st, name: str, testing: dict) -> tuple[pd.Series, float]:
+    """Holm decisions of the default betting test (by (hyp_id, side)) and the test's seconds."""
+    twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
+    runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
+                      for k in range(len(st.plan.shards))], ignore_index=True)
+    nodes = tp.load_nodes(runs, st.plan, st.x0)
+    tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
+    samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
+    t0 = time.monotonic()
+    res = run_tests(st.hyps, samples, nf, make_methods({"betting": {}}, 0),
+                    alpha=float(testing.get("alpha", 0.05)),
+                    correction=testing.get("correction", "holm"),
+                    failed_runs=testing.get("failed_runs", "conservative"))
+    secs = time.monotonic() - t0
+    key = res["hyp_id"].astype(str) + ":" + res["side"].astype(str)
+    return pd.Series(res["rejected"].to_numpy(), index=key.to_numpy()), secs
+
+
+def layouts(cfg: dict, seed: int, testing: dict, renumberings: int, seeds: int,
+            twins: list[str] | None) -> None:
+    """Decisions under renumberings of D and under other order seeds (module doc)."""
+    names = twins or list(cfg["twins"])
+    variants = [("as configured", {})]
+    variants += [(f"renumbered {r}", {"renumber": 1000 + r}) for r in range(1, renumberings + 1)]
+    variants += [(f"order seed {seed + s}", {"order_seed": seed + s}) for s in range(1, seeds)]
+    print("| twin | layout | Holm rejections | decisions differing from as configured | "
+          "s per test |")
+    print("|---|---|---|---|---|")
+    base: dict[str, pd.Series] = {}
+    for label, kw in variants:
+        st = build(cfg, seed, **kw)
+        for name in names:
+            dec, secs = _decisions(cfg, st, name, testing)
+            ref = base.setdefault(name, dec)
+            diff = int((dec.reindex(ref.index) != ref).sum())
+            print(f"| {name} | {label} | {int(dec.sum())} | {diff} of {len(ref)} | {secs:.1f} |",
+                  flush=True)
 
 
 if __name__ == "__main__":

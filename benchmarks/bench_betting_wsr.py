@@ -39,6 +39,9 @@ library's capital ``log_capital``/``_bound``):
 - ``const-pilot``: the twin side's honest pilot: the first ceil(sqrt(n)) values estimate
   sigma2 as above and are left out; the interval uses the other n - ceil(sqrt(n)).
 - ``mix-D0``: uniform mixture of the three constant bets lambda_D0 * {1/1.5, 1, 1.5}.
+- ``wsr-c0.5``, ``wsr-c0.75``: the reference itself at WSR's suggested truncations c = 1/2
+  and 3/4 (its ratio to the reference at c = 0.9 is WSR(c)/WSR(0.9); the default's ratio to
+  WSR at c is then plugin / wsr-c).
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ DISTRIBUTIONS = {  # name: (draw(rng, shape), mean, variance)
     "Uniform": (lambda r, s: r.random(s), 0.5, 1 / 12),
 }
 VARIANTS = ("plugin", "plugin:16", "mixture", "const-oracle", "const-D0", "const-pilot",
-            "mix-D0")
+            "mix-D0", "wsr-c0.5", "wsr-c0.75")
 
 
 def wsr_reference(x: np.ndarray, alpha: float, c: float = C_TRUNC, n_iter: int = 50
@@ -139,6 +142,8 @@ def bet_at(var: np.ndarray, n: int, alpha: float) -> np.ndarray:
 def variant_ci(name: str, x: np.ndarray, alpha: float, var: float, rng: np.random.Generator
                ) -> tuple[np.ndarray, np.ndarray]:
     r, n = x.shape
+    if name.startswith("wsr-c"):
+        return wsr_reference(x, alpha, float(name[len("wsr-c"):]))
     if name in ("plugin", "plugin:16", "mixture"):
         kind, _, k = name.partition(":")
         opts = {"orders": int(k)} if k else {}

@@ -19,14 +19,15 @@ def main(sm):
     actions = design.ActionBins.from_json(read_json(sm.input.actions))
     states = design.StateBins.from_json(read_json(sm.input.bins))
     obs = bounds.observational_side(
-        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states,
+        order_seed=int(sm.params.seed),
     )
     counts = pd.DataFrame({"hyp_id": hyps["hyp_id"], "n": obs.n, "n_follow": obs.follow.sizes})
     follow = pd.DataFrame(
         {
             "hyp_id": hyps["hyp_id"].to_numpy()[obs.follow.group_ids()],
             "value": obs.follow.values,
-            "pos": obs.follow_pos.values.astype("int64"),  # betting's data order
+            "pos": obs.follow_pos.values.astype("int64"),  # betting's content-keyed order
         }
     )
     log.info(

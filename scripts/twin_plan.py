@@ -8,24 +8,22 @@ from pathlib import Path
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify.io import log, read_parquet, run_rule, write_json  # noqa: E402
-from twinfalsify.runs.plan import plan_twin_runs  # noqa: E402
-from twinfalsify.schema import STAY_ID, SUBJECT_ID  # noqa: E402
+from twinfalsify.runs.plan import plan_twin_runs, x0_frame  # noqa: E402
+from twinfalsify.schema import FEATURES, STAY_ID  # noqa: E402
 
 
 def main(sm):
     d = read_parquet(sm.input.d, "D")
     hyps = read_parquet(sm.input.hypotheses, "hypotheses")
     runs = sm.params.runs
-    subjects = (
-        d.groupby(STAY_ID)[SUBJECT_ID].first().to_dict() if SUBJECT_ID in d else None
-    )
+    ids = d[STAY_ID].unique()
     plan = plan_twin_runs(
         hyps,
-        d[STAY_ID].unique(),
+        ids,
         runs.get("runs_per_sequence", 5000),
         int(runs.get("n_shards", 4)),
         int(sm.params.seed),
-        subjects=subjects,
+        x0=x0_frame(d, [int(s) for s in ids])[list(FEATURES)].to_numpy(float),
     )
     log.info(
         "%d X_0 per sequence, %d nodes, twin-hours %s",

@@ -41,9 +41,11 @@ def build_study(
     d0, d = split_stays(traj, d0_fraction, seed)
     actions, states, hyps, _ = design.design_on_d0(d0, min_support=min_support)
     obs = bounds.observational_side(
-        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states, order_seed=seed
     )
-    plan = tp.plan_twin_runs(hyps, d[STAY_ID].unique(), runs, 2, seed)
+    ids = d[STAY_ID].unique()
+    plan = tp.plan_twin_runs(hyps, ids, runs, 2, seed,
+                             x0=tp.x0_frame(d, ids.tolist())[list(FEATURES)].to_numpy(float))
     return Study(d0, d, actions, states, hyps, obs, plan, tp.x0_frame(d, plan.x0_stay_ids))
 
 

@@ -53,18 +53,22 @@ def random_hyps(h: int, x, actions, states, manski_share: float = 0.3) -> pd.Dat
 
 
 def brute_obs(hyps, x, actions, states):
-    """Direct transcription of docs/explanation/method.md, one trajectory at a time."""
+    """Direct transcription of docs/explanation/method.md, one trajectory at a time, in the
+    data order of hour t (``inference.order``: by the keyed hash of X_0:t, A_1:t)."""
+    from twinfalsify.inference.order import content_keys
+
+    keys = content_keys(x, actions, 0)
     out = []
     for _, h in hyps.iterrows():
         codes = design.state_codes(x, states, h.outcome)
         n, follow = 0, []
-        for i in range(len(x)):
+        for i in np.argsort(keys[:, h.t], kind="stable"):
             big_n = 0
             while big_n < h.t and actions[i, big_n] == h.actions[big_n]:
                 big_n += 1
             if all(h.bins[s] in (WHOLE_SPACE, codes[i, s]) for s in range(big_n + 1)):
                 n += 1
-                if big_n == h.t:  # (value, position among the entering ones, stay order)
+                if big_n == h.t:  # (value, position among the entering ones, data order)
                     follow.append((x[i, h.t, FEATURES.index(h.outcome)], n - 1))
         out.append((n, sorted(follow)))
     return out
@@ -156,3 +160,21 @@ def test_follow_values_are_raw_and_clipped_by_methods(t):
     s = bounds.hypothesis_samples(hyps, obs, bounds.Ragged.from_groups([np.zeros(1)] * 10))
     assert np.all((s.follow_f.values >= -0.5) & (s.follow_f.values <= 0.7))
     assert s.follow.values.min() < -0.5 or s.follow.values.max() > 0.7
+
+
+def test_renumbering_or_reordering_the_stays_changes_no_follower_position():
+    """The data order is a keyed hash of each trajectory's content: listing D's stays in
+    another order (any renumbering) gives every follower the same position, and the positions
+    do not follow the outcome even when the rows are sorted by it."""
+    x, actions, states = random_world(300)
+    hyps = random_hyps(60, x, actions, states)
+    base = bounds.observational_side(hyps, x, actions, states, order_seed=7)
+    for perm in (RNG.permutation(len(x)), np.argsort(x[:, 1, FEATURES.index("HR")])):
+        got = bounds.observational_side(hyps, x[perm], actions[perm], states, order_seed=7)
+        np.testing.assert_array_equal(got.n, base.n)
+        for h in range(len(hyps)):
+            a = sorted(zip(base.follow.group(h), base.follow_pos.group(h), strict=True))
+            b = sorted(zip(got.follow.group(h), got.follow_pos.group(h), strict=True))
+            assert a == b
+    other = bounds.observational_side(hyps, x, actions, states, order_seed=8)
+    assert not np.array_equal(other.follow_pos.values, base.follow_pos.values)  # seed keyed

@@ -110,7 +110,8 @@ def _study_bits(n: int = 6):
     d = generate({"n_stays": 40}, seed=3)
     x0 = d[d.t == 0].iloc[:n][["stay_id", *FEATURES]].reset_index(drop=True)
     ids = [int(s) for s in x0.stay_id]
-    plan = TwinPlan(x0_stay_ids=ids, seed=0, shards=[["1-2-3"]], nodes=["1", "1-2", "1-2-3"])
+    # seed 1: run seeds (by plan position) of both parities, which the faulty twin needs
+    plan = TwinPlan(x0_stay_ids=ids, seed=1, shards=[["1-2-3"]], nodes=["1", "1-2", "1-2-3"])
     actions = ActionBins(iv_edges=(1.0, 2.0, 3.0), vaso_edges=(0.1, 0.2, 0.3),
                          iv_medians=(0.0, 1.0, 2.0, 3.0, 4.0),
                          vaso_medians=(0.0, 0.1, 0.2, 0.3, 0.4))

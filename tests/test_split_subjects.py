@@ -1,5 +1,6 @@
-"""Repeat patients: the D0 / D split keeps a patient's stays on one side, and X_0 draws take
-one stay per patient while they can; without a subject column nothing changes."""
+"""Repeat patients: the D0 / D split keeps a patient's stays on one side, and the twin's X_0
+are a sample of D's stays (law of X_0 = law of D's stays, repeat stays included, in an order
+that follows no covariate); without a subject column nothing changes."""
 
 from __future__ import annotations
 
@@ -54,27 +55,47 @@ def test_without_subjects_by_subject_is_by_stay():
         split_stays(traj, 0.2, 3, by="patient")
 
 
-def test_x0_draws_one_stay_per_patient_first():
+def test_x0_law_equals_the_stays_law_with_repeat_patients():
+    """Over 10,000 plans (seeds) with m < |D|: the share of X_0 from patients with 4 stays
+    equals their share of D's stays (hypergeometric z-test), every stay is drawn equally often
+    (chi-square), and the list order follows neither the patient's stay count nor X_0 (the
+    order is a keyed hash of X_0, not the stay numbering: ids here sorted by X_0)."""
+    from scipy import stats
+
     df = _stays()
+    x0 = np.random.default_rng(1).normal(size=(len(df), 2))
+    order = np.argsort(x0[:, 0])
+    ids = np.sort(df[STAY_ID].to_numpy())  # stay ids ranked by the covariate: worst case
+    ids_by_row = np.empty(len(df), np.int64)
+    ids_by_row[order] = ids
+    n_stays = df.groupby(SUBJECT_ID)[STAY_ID].transform("size").to_numpy()
+    many = dict(zip(ids_by_row.tolist(), (n_stays == 4).tolist(), strict=True))
+    cov = dict(zip(ids_by_row.tolist(), x0[:, 0].tolist(), strict=True))
     hyps = pd.DataFrame({"actions": [(0,)]})
-    subjects = dict(zip(df[STAY_ID].tolist(), df[SUBJECT_ID].tolist(), strict=True))
-    for seed in range(10):
-        plain = plan_twin_runs(hyps, df[STAY_ID].to_numpy(), None, 1, seed)
-        grouped = plan_twin_runs(hyps, df[STAY_ID].to_numpy(), None, 1, seed, subjects=subjects)
-        x = grouped.x0_stay_ids
-        assert sorted(x) == sorted(plain.x0_stay_ids)  # the same stays, reordered
-        first = [subjects[s] for s in x[:40]]
-        assert len(set(first)) == 40  # every patient once before any twice
-        # within the first round, the permutation's order
-        pos = {s: i for i, s in enumerate(plain.x0_stay_ids)}
-        assert [pos[s] for s in x[:40]] == sorted(pos[s] for s in x[:40])
-        # 30 draws: 30 patients
-        part = plan_twin_runs(hyps, df[STAY_ID].to_numpy(), 30, 1, seed, subjects=subjects)
-        assert len({subjects[s] for s in part.x0_stay_ids}) == 30
-    # one stay per patient: exactly the old draws
-    one = {s: s for s in df[STAY_ID].tolist()}
-    assert plan_twin_runs(hyps, df[STAY_ID].to_numpy(), 25, 1, 4, subjects=one).x0_stay_ids == \
-        plan_twin_runs(hyps, df[STAY_ID].to_numpy(), 25, 1, 4).x0_stay_ids
+    big, m, reps = len(df), 30, 10_000
+    share = np.mean(list(many.values()))
+    drawn = np.zeros(big)
+    pos_index = {s: i for i, s in enumerate(ids_by_row.tolist())}
+    n_many, first_half_cov, second_half_cov, many_pos = 0, [], [], []
+    for seed in range(reps):
+        x = plan_twin_runs(hyps, ids_by_row, m, 1, seed, x0=x0).x0_stay_ids
+        flags = np.array([many[s] for s in x])
+        n_many += flags.sum()
+        drawn[[pos_index[s] for s in x]] += 1
+        c = np.array([cov[s] for s in x])
+        first_half_cov.append(c[: m // 2].mean())
+        second_half_cov.append(c[m // 2:].mean())
+        many_pos.extend(np.flatnonzero(flags).tolist())
+    # share: each plan's count is hypergeometric(N = big, K = share N, m)
+    var = m * share * (1 - share) * (big - m) / (big - 1)
+    z = (n_many - reps * m * share) / np.sqrt(reps * var)
+    assert abs(z) < 4, (n_many / (reps * m), share)
+    # every stay equally likely (expected reps m / N each)
+    assert stats.chisquare(drawn).pvalue > 1e-4
+    # order: repeat stays are not pushed to the end; the covariate does not trend
+    assert abs(np.mean(many_pos) - (m - 1) / 2) < 4 * np.sqrt((m * m - 1) / 12 / len(many_pos))
+    d = np.array(first_half_cov) - np.array(second_half_cov)
+    assert abs(d.mean()) < 4 * d.std() / np.sqrt(reps)
 
 
 def test_contract_keeps_and_checks_the_subject_column():

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
+from twinfalsify.inference.order import content_keys
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 # TwinNodes lives in schema (a data contract), so the twin stage does not depend on this
@@ -44,7 +45,8 @@ class ObservationalSide:
     n: np.ndarray  # (H,) entering trajectories
     follow: Ragged  # raw outcomes of followers
     # aligned with ``follow``: each follower's position among the hypothesis' n entering
-    # trajectories, D listed by stay id (the betting test's data order); None: unknown
+    # trajectories in the content-keyed order (``inference.order``: the betting test's data
+    # order, independent of the stay numbering); None: unknown
     follow_pos: Ragged | None = None
 
 
@@ -54,8 +56,14 @@ def observational_side(
     actions: np.ndarray,
     states: StateBins,
     t_max: int = T_MAX,
+    order_seed: int = 0,
 ) -> ObservationalSide:
-    """Counts and follower outcomes on D: x (n, T+1, F) features, actions (n, T) codes."""
+    """Counts and follower outcomes on D: x (n, T+1, F) features, actions (n, T) codes.
+
+    ``order_seed`` (the study seed) keys the data order of the followers' positions
+    (``inference.order.content_keys``): a hypothesis of hour t orders its entering
+    trajectories by a keyed hash of their X_0:t, A_1:t, so no stay id and no row order enters.
+    """
     h_total = len(hyps)
     n_enter = np.zeros(h_total, dtype=np.int64)
     groups: list[np.ndarray] = [np.zeros(0)] * h_total
@@ -64,6 +72,11 @@ def observational_side(
     b_pad = padded(hyps, "bins", t_max + 1)
     t_h = hyps["t"].to_numpy(np.int64)
     s_idx = np.arange(t_max + 1)
+    keys = content_keys(x[:, : t_max + 1], actions[:, :t_max], order_seed)
+    # per hour t: the data order of D (stable: ties are identical contents, module doc) and
+    # each row's rank in it
+    order = {int(t): np.argsort(keys[:, t], kind="stable") for t in np.unique(t_h)}
+    rank = {t: np.argsort(o, kind="stable") for t, o in order.items()}
     for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
         codes = state_codes(x, states, outcome)
         y = x[:, :, FEATURES.index(outcome)]
@@ -77,8 +90,12 @@ def observational_side(
             n_enter[hs] = enter.sum(axis=1)
             hh, ii = np.nonzero(follow)
             vals = y[ii, t_h[hs][hh]]
-            # rows of x are D's stays by stay id: rank among the entering ones
-            pos = (np.cumsum(enter, axis=1) - 1)[hh, ii]
+            # rank among the entering ones in the content-keyed order of the hypothesis' hour
+            cum = np.empty(enter.shape, dtype=np.int64)
+            for t in np.unique(t_h[hs]):
+                r = t_h[hs] == t
+                cum[r] = (np.cumsum(enter[r][:, order[int(t)]], axis=1) - 1)[:, rank[int(t)]]
+            pos = cum[hh, ii]
             cuts = np.searchsorted(hh, np.arange(1, len(hs)))
             for j, (v, p) in enumerate(zip(np.split(vals, cuts), np.split(pos, cuts), strict=True)):
                 groups[hs[j]] = v

@@ -83,8 +83,21 @@ def source_error(source: Mapping[str, Any]) -> str | None:
 
 
 def study_config_error(config: Mapping[str, Any], schema_path: str | Path) -> str | None:
-    """Schema check, then :func:`semantic_error`: the first problem as one line, or None."""
-    return config_error(dict(config), schema_path) or semantic_error(config)
+    """Withdrawn options, the schema check, then :func:`semantic_error`: the first problem as
+    one line, or None. A withdrawn option is named with its reason before the schema would
+    only say "not one of"."""
+    return (removed_option_error(config) or config_error(dict(config), schema_path)
+            or semantic_error(config))
+
+
+def removed_option_error(config: Mapping[str, Any]) -> str | None:
+    """A withdrawn option (``twin_runs.combine: product``) as one line saying why, or None."""
+    runs = config.get("twin_runs")
+    if isinstance(runs, Mapping) and runs.get("combine") == "product":
+        from twinfalsify.inference.sequential import PRODUCT_REMOVED
+
+        return f"config key twin_runs.{PRODUCT_REMOVED}"
+    return None
 
 
 def shard_count(config: Mapping[str, Any]) -> tuple[int, str | None]:

@@ -47,6 +47,7 @@ rule observational_side:
         mem_mb=6000,
         runtime=30,
     params:
+        seed=config["seed"],
         code=code("observational_side"),
     script:
         "../../scripts/observational_side.py"

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from twinfalsify.inference.sequential import COMBINES
+from twinfalsify.inference.sequential import COMBINES, PRODUCT_REMOVED
 from twinfalsify.schema import OUTCOMES, ContractError
 
 ADAPTIVE = "betting_sequential"  # inference.sequential.adaptive_test (anytime-valid, exact)
@@ -69,7 +69,7 @@ class CalibrationConfig:
     adaptive: bool = True  # also run inference.sequential.adaptive_test (betting_sequential)
     adaptive_batch_size: int = 25  # X_0 revealed per batch (budget = runs_per_sequence)
     adaptive_curtail: float = 0.0  # opt-in curtailment epsilon of the adaptive test (0: off)
-    adaptive_combine: str = "union"  # union | product (inference.product; opt-in)
+    adaptive_combine: str = "union"  # union only (product withdrawn: sequential.PRODUCT_REMOVED)
 
     @classmethod
     def from_dict(cls, cfg: dict[str, Any] | None, source: str = "calibration config"):
@@ -122,6 +122,8 @@ class CalibrationConfig:
         c = self.adaptive_curtail
         if isinstance(c, bool) or not isinstance(c, int | float) or not 0 <= c < 1:
             raise bad("adaptive_curtail", f"must be in [0, 1), got {self.adaptive_curtail}")
+        if self.adaptive_combine == "product":
+            raise bad("adaptive_combine", PRODUCT_REMOVED)
         if self.adaptive_combine not in COMBINES:
             raise bad("adaptive_combine",
                       f"must be one of {', '.join(COMBINES)}, got {self.adaptive_combine!r}")

@@ -75,9 +75,11 @@ def build_replicate(cfg: CalibrationConfig, seed: int) -> Replicate:
             f"min_support {cfg.min_support}); lower min_support or raise n_stays"
         )
     obs = bounds.observational_side(
-        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states
+        hyps, to_array(d, FEATURES), design.action_codes(d, actions), states, order_seed=seed
     )
-    plan = tp.plan_twin_runs(hyps, d[STAY_ID].unique(), cfg.runs_per_sequence, 1, seed)
+    ids = d[STAY_ID].unique()
+    plan = tp.plan_twin_runs(hyps, ids, cfg.runs_per_sequence, 1, seed,
+                             x0=tp.x0_frame(d, ids.tolist())[list(FEATURES)].to_numpy(float))
     x0 = tp.x0_frame(d, plan.x0_stay_ids)
     runs = tp.run_shard(OracleTwin(world), plan, 0, x0, actions, log=io.StringIO())
     nodes = tp.load_nodes(runs, plan, x0)

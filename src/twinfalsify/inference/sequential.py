@@ -87,22 +87,19 @@ from twinfalsify.inference.betting import (
     running_moments,
 )
 from twinfalsify.inference.multiple_testing import correct
-from twinfalsify.inference.product import (
-    GRID_CELLS,
-    SUB_STEPS,
-    grid,
-    mirrored,
-    obs_cell_capital,
-    product_stat,
-    twin_grid,
-)
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.schema import FEATURES, T_MAX
 
 UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
 FAILED_RUNS = ("conservative", "drop")  # failed twin runs: worst case or left out (doc)
 HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware futility bounds
-COMBINES = ("union", "product")  # how the observational and twin capitals combine (doc)
+COMBINES = ("union",)  # how the observational and twin capitals combine (doc)
+# The product rule (inf_m G_lo(m) K-_twin(m) >= 1/a) was withdrawn: its proof needs a twin
+# sample independent of the observational one, and with shared X_0 it exceeded its level
+# (docs/explanation/sequential.md, "The product rule (withdrawn)").
+PRODUCT_REMOVED = ("combine: product was removed: it can exceed its level when the twin's X_0 "
+                   "come from the observational sample (measured 0.0020 at a = 0.001); "
+                   "use combine: union")
 
 
 def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
@@ -268,13 +265,10 @@ class SequentialState:
     # opt-in curtailment (doc (d)): stop a side when the predictive probability that the
     # full budget rejects it early (at a*) is below this epsilon (0: off)
     curtail: float = 0.0
-    # "union" (the fixed scheme's rule) or "product" (inference.product: opt-in, unproven
-    # when the twin shares the observational sample's X_0, as the workflow runs it)
+    # "union" (the fixed scheme's rule; the only one: PRODUCT_REMOVED says why)
     combine: str = "union"
     # failed twin runs: "conservative" (worst case, module doc) or "drop" (left out)
     failed_runs: str = "conservative"
-    grid_cells: int = GRID_CELLS  # product only: bet cells of the exact inf over m
-    grid_sub: int = SUB_STEPS  # product only: twin sub-steps per bet cell
     side: np.ndarray = field(init=False)  # (H, 2) UNDECIDED | REJECTED | FUTILE (lo, up)
     stop_batch: np.ndarray = field(init=False)  # (H,) batch count at stop (-1: running)
 
@@ -285,6 +279,8 @@ class SequentialState:
                              f"{self.batch_size}, {self.budget}")
         if not 0 < self.alpha < 1:
             raise ValueError(f"sequential: alpha must be in (0, 1), got {self.alpha}")
+        if self.combine == "product":
+            raise ValueError(f"sequential: {PRODUCT_REMOVED}")
         if self.combine not in COMBINES:
             raise ValueError(f"sequential: combine must be one of {', '.join(COMBINES)}, "
                              f"got {self.combine!r}")
@@ -317,18 +313,10 @@ class SequentialState:
         lo, up = self.lo.take(g), self.up.take(g)
         self.l_star, self.l_fut = np.zeros(h), np.zeros(h)
         self.u_star, self.u_fut = np.ones(h), np.ones(h)
-        if self.combine == "union":
-            self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
-            self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
-            self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
-            self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
-        else:  # product: the observational capital per grid cell (H_up through x -> 1 - x)
-            self.t_grid = grid(self.grid_cells, self.grid_sub)
-            self.g_cell = np.zeros((h, 2, 2, self.grid_cells))  # hyp, side, (left, right), cell
-            for col, side in ((0, lo), (1, mirrored(up))):
-                self.g_cell[g, col] = np.stack(
-                    obs_cell_capital(side.x, side.offsets, grid(self.grid_cells), self.c),
-                    axis=1)
+        self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
+        self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
+        self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
+        self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
         self.side = np.zeros((h, 2), dtype=np.int8)
         # level at which a side was found futile: alpha ("primary": p > alpha for sure) or a
         # Holm-aware level alpha / 2^q < alpha (p > that level for sure); 0 if not futile
@@ -404,8 +392,7 @@ class SequentialState:
         und = self.side[act] == UNDECIDED
         r = runs.in_b0[act][:, j:self.budget].sum(axis=1)  # runs that can still enter
         lam = future_bet_bound(tw.succ, nhat, self.delta0[act], self.c)
-        decide = self._decide_union if self.combine == "union" else self._decide_product
-        rej, fut, lvl, cur_m, cur_lev = decide(tw, act, r, lam)
+        rej, fut, lvl, cur_m, cur_lev = self._decide_union(tw, act, r, lam)
         new = np.where(rej, REJECTED, np.where(fut, FUTILE, UNDECIDED)).astype(np.int8)
         if self.curtail > 0:
             cur = self._curtailed(runs, tw, nhat, act, j, lam, cur_m, cur_lev)
@@ -450,59 +437,6 @@ class SequentialState:
         return (np.stack([rej_lo, rej_up], axis=1), np.stack([fut_lo, fut_up], axis=1),
                 np.stack([lvl_lo, lvl_up], axis=1), cur_m, cur_lev)
 
-    def _decide_product(self, tw: TwinSides, act: np.ndarray, r: np.ndarray,
-                        lam: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Product rule (``inference.product``); same outputs as :meth:`_decide_union`.
-
-        Early rejection: the exact lower bound of log inf_m G(m) K(m) >= log(1/a*).
-        Futility at level a: no continuation up to the budget can reach log(1/a). The
-        best reachable value is at most G(m) K_best(m) at any single m (the inf is below
-        every point), with K_best(m) = max(max_{t<=tau} K_t(m), K_tau(m) (1 + min(lambda_bar,
-        c/(1-m)) m)^r) as in rule (b), taken at every twin grid point u with G(u) bounded
-        above by its bet cell's left-end value (G decreases in m; exact at the right ends).
-        Holm-aware: a = alpha/(F+1) exactly (no bound to recompute, so no quantisation).
-        """
-        stat, (k_lo, e_lo), (k_up, e_up) = self._product(tw, act)
-        g = self.g_cell[act]
-        rej = stat >= np.log(1.0 / self.a_star[act])[:, None]
-        # best reachable, bounded above at every twin grid point u: G(u) <= G^(k)(m_k) inside
-        # bet cell k (G decreasing), exact G^(k)(m_{k+1}) at its right end
-        m = self.t_grid
-        with np.errstate(divide="ignore"):
-            cap = self.c / (1.0 - m)
-        grow = r[:, None] * np.log1p(np.minimum(lam[:, None], cap[None, :]) * m[None, :])
-        g_up_at = np.concatenate([np.repeat(g[:, :, 0], self.grid_sub, axis=2),
-                                  g[:, :, 1, -1:]], axis=2)  # (A, 2, M S + 1)
-        ends = np.arange(1, self.grid_cells) * self.grid_sub
-        g_up_at[:, :, ends] = np.minimum(g_up_at[:, :, ends], g[:, :, 1, :-1])
-        best = g_up_at + np.stack([np.maximum(k_lo, e_lo + grow),
-                                   np.maximum(k_up, e_up + grow)], axis=1)
-        at, top = best.argmin(axis=2), best.min(axis=2)
-        fut = top < np.log(1.0 / self.alpha)
-        lvl = np.where(fut, self.alpha, 0.0)
-        if self.holm_aware:
-            f = np.broadcast_to(self.primary_futile()[act][:, None], top.shape)
-            hol = (f > 0) & ~fut & (top < np.log((f + 1.0) / self.alpha))
-            fut = fut | hol
-            lvl = np.where(hol, self.alpha / (f + 1.0), lvl)
-        # curtailment at the minimising point, in the original coordinates (H_up mirrored)
-        ms = m[at]
-        cur_m = np.stack([ms[:, 0], 1.0 - ms[:, 1]], axis=1)
-        g_at = np.take_along_axis(g_up_at, at[:, :, None], axis=2)[:, :, 0]
-        # curtailment (d) aims at early rejection: log(1/a*)
-        return rej, fut, lvl, cur_m, np.log(1.0 / self.a_star[act])[:, None] - g_at
-
-    def _product(self, tw: TwinSides, groups: np.ndarray) -> tuple:
-        """(stat (len(groups), 2), (K-max, K-end), (K+max, K+end)): the product rule's lower
-        bound of log inf_m G K for (H_lo, H_up) and the twin capitals on ``t_grid`` (H_up
-        through x -> 1 - x) of the twin sides ``tw`` holding exactly ``groups``."""
-        lo = twin_grid(tw.lo, self.t_grid, self.c)
-        up = twin_grid(mirrored(tw.up), self.t_grid, self.c)
-        g = self.g_cell[groups]
-        stat = np.stack([product_stat(g[:, 0, 0], g[:, 0, 1], lo[0]),
-                         product_stat(g[:, 1, 0], g[:, 1, 1], up[0])], axis=1)
-        return stat, lo, up
-
     def _best(self, tw: TwinSides, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
               lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
@@ -525,8 +459,7 @@ class SequentialState:
         ``curtail``, a predictive probability under a normal approximation.
 
         It aims at early rejection: at the point ``at_m`` (union: L*, U*, the observational
-        bounds at a*; product: the point minimising the best reachable G K) against the
-        log-level ``at_lev`` (union: log(2/a*); product: log(1/a*) - log G(m)). Aiming at
+        bounds at a*) against the log-level ``at_lev`` (union: log(2/a*)). Aiming at
         the side's Holm-aware level instead (alpha / 2^q, far more lenient when few sides
         are futile) kept grey-zone sides running to the budget: more hours for the same
         rejections (docs/explanation/sequential.md). Each remaining run with X_0 in B_0
@@ -603,11 +536,7 @@ class SequentialState:
         tw, nhat = self._twin_prefix(runs, used, groups)
         p_lo, p_up = np.ones(h), np.ones(h)
         ok = (self.obs.n > 0) & (nhat > 0)
-        if self.combine == "product" and ok.any():
-            g = np.flatnonzero(ok)
-            p = np.minimum(1.0, np.exp(-self._product(tw.take(g), g)[0]))
-            p_lo[g], p_up[g] = p[:, 0], p[:, 1]
-        elif ok.any():
+        if ok.any():
             g = np.flatnonzero(ok)
             lo, up, t = self.lo.take(g), self.up.take(g), tw.take(g)
             s = self.obs_samples
@@ -749,8 +678,9 @@ def adaptive_test(
     ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
     Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
     futile sides per shard as the workflow's parallel shards do (default: whole family);
-    ``combine``: "union" (default) or "product" (``inference.product``); ``failed_runs``:
-    "conservative" (default: valid whatever the failed runs would have produced) or "drop".
+    ``combine``: "union" (the only rule; "product" was withdrawn, ``PRODUCT_REMOVED``);
+    ``failed_runs``: "conservative" (default: valid whatever the failed runs would have
+    produced) or "drop".
     """
     m = nodes.x0.shape[0]
     budget = m if budget is None else int(budget)

@@ -116,11 +116,6 @@ def run_adaptive_shard(
     index = {parse_node(n): i for i, n in enumerate(plan.nodes)}
     nodes = TwinNodes(index=index, values=np.full((len(index), m, len(FEATURES)), np.nan),
                       x0=x0[list(FEATURES)].to_numpy(float))
-    if combine == "product":  # inference.product: the proof needs samples the twin does not share
-        print(f"[adaptive {twin.name} shard {shard}] WARNING: combine: product has no validity "
-              "proof here: the twin's X_0 come from the observational sample's patients "
-              "(docs/explanation/sequential.md); combine: union keeps its guarantee",
-              file=log, flush=True)
     st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed,
                          n_family=family_sizes(hyps), only=mine,
                          holm_aware=correction in HOLM_AWARE, holm_scope=mine, curtail=curtail,

@@ -1,8 +1,11 @@
 """Plan, run and collect twin simulations in prefix-tree form.
 
 Every action sequence a_1:t used by a hypothesis gets runs from the same m
-initial states: the first m stays of one seeded permutation of D (so the runs
-of one sequence have distinct X_0 and are i.i.d.). Because a twin is
+initial states: the first m stays of D in the order of a keyed hash of their X_0
+(``inference.order.x0_keys``, keyed by the study seed), i.e. a uniformly random
+m-subset of D's stays in a uniformly random order that no stay id and no row
+order can change (so the runs of one sequence have distinct X_0, are i.i.d., and
+their X_0 law is D's stays' law, repeat stays of a patient included). Because a twin is
 non-anticipating (hour s depends on a_1:s only), the runs of a_1:s are the
 first s hours of the runs of any extension a_1:t from the same X_0. Results
 are therefore stored per node = (prefix a_1:s, X_0): one row holding hour s.
@@ -25,6 +28,7 @@ import pandas as pd
 
 from twinfalsify import noise
 from twinfalsify.design import ActionBins
+from twinfalsify.inference.order import x0_keys
 from twinfalsify.schema import FEATURES, STAY_ID, ContractError, TwinNodes, mark_implausible
 from twinfalsify.twins.base import Twin
 
@@ -60,8 +64,14 @@ class TwinPlan:
         return cls(**data)
 
     def run_seeds(self) -> np.ndarray:
-        """One uint64 seed per X_0, shared by every sequence (so prefixes coincide)."""
-        return noise.combine(np.uint64(self.seed), np.asarray(self.x0_stay_ids, dtype=np.uint64))
+        """One uint64 seed per X_0, shared by every sequence (so prefixes coincide).
+
+        Keyed by the run's position in the plan's X_0 list, not by its stay id: the list is
+        ordered by a keyed hash of X_0 (``plan_twin_runs``), so a stochastic twin gets the
+        same noise for the same X_0 under any numbering of the stays (two stays with equal
+        X_0 may swap positions, which leaves the set of (X_0, seed) pairs unchanged)."""
+        return noise.combine(np.uint64(self.seed), np.arange(len(self.x0_stay_ids),
+                                                             dtype=np.uint64))
 
     def hours(self) -> dict[str, int]:
         """Simulated twin-hours: paper's scheme (every sequence from scratch), leaves only
@@ -81,24 +91,33 @@ def plan_twin_runs(
     runs_per_sequence: int | None,
     n_shards: int,
     seed: int,
-    subjects: dict[int, int] | None = None,
+    x0: np.ndarray | None = None,
 ) -> TwinPlan:
-    """X_0: the first m stays of a seeded permutation of D's sorted stay ids, reordered
-    so that each patient's first stay (in permutation order) comes before any patient's
-    second one (``subjects``: stay id -> patient; without it, or with one stay per patient,
-    the permutation as it is). So m draws take one stay per patient while they can."""
-    stays = np.sort(np.asarray(d_stay_ids, dtype=np.int64))
-    m = len(stays) if not runs_per_sequence else min(int(runs_per_sequence), len(stays))
-    if runs_per_sequence and int(runs_per_sequence) > len(stays):
+    """X_0: the first m of D's stays in the order of a keyed hash of their X_0 (``x0``: the
+    (len(d_stay_ids), F) t = 0 features aligned with ``d_stay_ids``; module doc). Equal X_0
+    tie and are listed by stay id (their runs are interchangeable for a deterministic twin).
+    Without ``x0`` (plans built by hand): the first m of a seeded permutation of the sorted
+    stay ids. Either way every stay is drawn with the same probability m / |D|, so the X_0
+    law is D's stays' law; a patient with several stays is drawn as often as those stays.
+    """
+    ids = np.asarray(d_stay_ids, dtype=np.int64)
+    if len(np.unique(ids)) != len(ids):
+        raise ContractError("twin plan: the stay ids of D must be distinct")
+    m = len(ids) if not runs_per_sequence else min(int(runs_per_sequence), len(ids))
+    if runs_per_sequence and int(runs_per_sequence) > len(ids):
         log.warning(
             "twin_runs.runs_per_sequence: %d asked, but D has only %d stays (X_0 are drawn "
             "without replacement): using %d runs per sequence",
-            int(runs_per_sequence), len(stays), len(stays),
+            int(runs_per_sequence), len(ids), len(ids),
         )
-    perm = np.random.default_rng(seed).permutation(stays)
-    if subjects:
-        subj = pd.Series([subjects.get(int(x), -1 - int(x)) for x in perm])
-        perm = perm[np.argsort(subj.groupby(subj).cumcount().to_numpy(), kind="stable")]
+    if x0 is None:
+        perm = np.random.default_rng(seed).permutation(np.sort(ids))
+    else:
+        x0 = np.asarray(x0, dtype=float)
+        if x0.ndim != 2 or len(x0) != len(ids):
+            raise ContractError(f"twin plan: x0 must have one row per stay of D ({len(ids)}), "
+                                f"got shape {x0.shape}")
+        perm = ids[np.lexsort((ids, x0_keys(x0, seed)))]
     x0 = perm[:m]
     seqs = {tuple(int(a) for a in s) for s in hyps["actions"].tolist()}
     nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
