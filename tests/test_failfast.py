@@ -11,6 +11,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -345,3 +350,70 @@ def test_twin_context_stays_valid_when_the_study_folder_moves(tmp_path):
     twin = make_twin("f", {"kind": "fitted"}, new / "twin_context.json")
     x0, doses, seeds = _study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
     assert np.isfinite(twin.simulate(x0, doses, seeds).features).all()
+
+
+# ---- a twin's child holding its pipes -----------------------------------------------------
+
+DAEMON_TWIN = [FAULTY_TWIN[0], str(Path(FAULTY_TWIN[1]).with_name("daemon_twin.py"))]
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, killed but not yet reaped by init, counts as ended)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _ended(pids: list[int], within_s: float = 3.0) -> bool:
+    """Whether every pid has ended (a SIGKILL takes effect asynchronously: wait a little)."""
+    deadline = time.monotonic() + within_s
+    while any(_alive(p) for p in pids):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.fixture
+def child_pids(tmp_path):
+    """The pid file of daemon_twin.py; children still alive afterwards are killed."""
+    pid_file = tmp_path / "children.pid"
+    yield pid_file
+    for pid in (int(p) for p in pid_file.read_text().split()) if pid_file.exists() else ():
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("escape", [False, True], ids=["in_group", "escaped"])
+def test_child_holding_stdout_does_not_stall_the_shard(child_pids, escape):
+    """The twin answers and exits; its child keeps stdout open for 120 s. The shard ends
+    in seconds, and a child still in the twin's process group is killed with it."""
+    cmd = [*DAEMON_TWIN, f"--pid-file={child_pids}", *(["--escape"] if escape else [])]
+    t0 = time.monotonic()
+    res = simulate_via_protocol(cmd, *_many(6), env=ENV, workers=2, timeout_s=30,
+                                progress=False)
+    took = time.monotonic() - t0
+    assert list(res.status) == ["ok"] * 6
+    assert took < 15, took
+    pids = [int(p) for p in child_pids.read_text().split()]
+    assert len(pids) == 2
+    if not escape:
+        assert _ended(pids), pids
+
+
+def test_crash_while_a_child_holds_stdout_is_a_crash_not_a_timeout(child_pids):
+    """The twin crashes on every run while its child keeps stdout open: each attempt ends
+    as a crash within seconds, not after the run's time limit (60 s here)."""
+    cmd = [*DAEMON_TWIN, f"--pid-file={child_pids}", "--mode=crash:3"]
+    x0, doses, seeds = _many(3)
+    seeds = np.array([3, 5, 7], dtype=np.uint64)
+    t0 = time.monotonic()
+    res = simulate_via_protocol(cmd, x0, doses, seeds, env=ENV, timeout_s=60, retries=1,
+                                progress=False)
+    took = time.monotonic() - t0
+    assert list(res.status) == ["error", "ok", "ok"]
+    assert "worker exited with code 3" in res.message[0]
+    assert took < 20, took
+    assert _ended([int(p) for p in child_pids.read_text().split()])
