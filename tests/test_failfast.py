@@ -207,6 +207,24 @@ def test_duplicated_yaml_key_names_key_and_both_lines(tmp_path):
     assert load_yaml_strict(path) == {"a": {"b": 1}, "c": [1, {"b": 2}]}
 
 
+def test_yaml_merge_keys_are_accepted_and_duplicates_still_refused(tmp_path):
+    """``<<: *anchor`` merges defaults the mapping may override (YAML's merge rule); a key
+    the mapping itself writes twice is still refused, next to a merge key too."""
+    path = tmp_path / "study.yaml"
+    path.write_text("base: &twin {kind: oracle, timeout_s: 30}\n"
+                    "extra: &more {workers: 2}\n"
+                    "twins:\n"
+                    "  a:\n    <<: *twin\n    timeout_s: 60\n"
+                    "  b:\n    <<: [*twin, *more]\n")
+    cfg = load_yaml_strict(path)
+    assert cfg["twins"] == {"a": {"kind": "oracle", "timeout_s": 60},
+                            "b": {"kind": "oracle", "timeout_s": 30, "workers": 2}}
+    path.write_text("base: &twin {kind: oracle}\ntwins:\n  a:\n    <<: *twin\n"
+                    "    seed: 1\n    seed: 2\n")
+    with pytest.raises(ContractError, match=r"key 'seed' is written twice \(lines 5 and 6\)"):
+        load_yaml_strict(path)
+
+
 def test_n_shards_is_capped_at_the_number_of_actions():
     assert shard_count({"twin_runs": {"n_shards": 4}}) == (4, None)
     assert shard_count({"twin_runs": {"n_shards": N_ACTIONS}}) == (N_ACTIONS, None)

@@ -183,6 +183,8 @@ def load_yaml_strict(path: str | Path) -> Any:
 
     PyYAML keeps the last value silently; a study config with ``alpha`` twice would then
     run with whichever came last. ContractError names the file, the key and both lines.
+    Merge keys (``<<: *anchor``) are allowed: a key of the merged mapping that the mapping
+    itself sets again is an override, as YAML defines it, not a duplicate.
     """
     import yaml
 
@@ -192,6 +194,10 @@ def load_yaml_strict(path: str | Path) -> Any:
     def mapping(loader: Strict, node: yaml.MappingNode, deep: bool = False) -> dict:
         seen: dict[Any, int] = {}
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                # ``<<: *anchor``: its keys are defaults the mapping's own keys may
+                # override (YAML's merge rule), not duplicates; PyYAML merges them below
+                continue
             key = loader.construct_object(key_node, deep=deep)
             line = key_node.start_mark.line + 1
             if key in seen:
