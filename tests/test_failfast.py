@@ -435,3 +435,60 @@ def test_crash_while_a_child_holds_stdout_is_a_crash_not_a_timeout(child_pids):
     assert "worker exited with code 3" in res.message[0]
     assert took < 20, took
     assert _ended([int(p) for p in child_pids.read_text().split()])
+
+
+# ---- full disk ----------------------------------------------------------------------------
+
+_WRITE_BIG = """
+import resource, sys
+import numpy as np, pandas as pd
+from twinfalsify import io
+from twinfalsify.schema import ContractError
+kind, path = sys.argv[1], sys.argv[2]
+resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # ulimit -f: 200 kB
+df = pd.DataFrame(np.random.default_rng(0).normal(size=(50_000, 8)), columns=list("abcdefgh"))
+try:
+    if kind == "parquet":
+        io.write_parquet(df, path)
+    elif kind == "csv":
+        io.write_csv(df, path)
+    elif kind == "text":
+        io.write_text(df.to_csv(), path)
+    else:
+        import matplotlib.pyplot as plt
+        from twinfalsify.figures import save_all
+        fig, ax = plt.subplots()
+        ax.plot(df["a"].to_numpy(), df["b"].to_numpy(), ".")
+        save_all(fig, path)
+except ContractError as exc:
+    print(exc)
+    sys.exit(2)
+"""
+
+
+@pytest.mark.parametrize("kind,name", [("parquet", "runs.parquet"), ("csv", "t.csv"),
+                                       ("text", "t.txt"), ("figure", "f.pdf")])
+def test_full_disk_is_one_line_and_leaves_no_temporary_file(tmp_path, kind, name):
+    """A write that hits the file size limit (as a full disk would) ends in one line naming
+    the file and the folder's free space; no temporary file stays behind. A later write
+    that succeeds also removes a temporary file an earlier, killed writer left."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "results" / name
+    done = subprocess.run([sys.executable, "-c", _WRITE_BIG, kind, str(out)], env={
+        **os.environ, **ENV}, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    line = done.stdout.strip()
+    assert "\n" not in line and line.startswith(f"{out}: cannot write: File too large ("), line
+    assert f"free in {out.parent})" in line
+    assert sorted(p.name for p in out.parent.iterdir()) == []  # no half file, no .tmp
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale = out.parent / f".{name}.{dead}.tmp"  # left by a writer killed with -9
+    stale.write_bytes(b"x" * 1000)
+    done = subprocess.run([sys.executable, "-c", _WRITE_BIG.replace("200_000", "-1"), kind,
+                           str(out)], env={**os.environ, **ENV}, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in out.parent.iterdir()) == [name]
