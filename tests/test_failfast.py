@@ -492,3 +492,61 @@ def test_full_disk_is_one_line_and_leaves_no_temporary_file(tmp_path, kind, name
                           text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert sorted(p.name for p in out.parent.iterdir()) == [name]
+
+
+# ---- smaller: warnings in the shard log, answer line cap ----------------------------------
+
+
+def _in_rule(tmp_path, body):
+    """Run ``body`` as a rule script does (io.run_rule: console and the rule's log file);
+    return the log file's lines."""
+    from types import SimpleNamespace
+
+    from twinfalsify.io import run_rule
+
+    log = tmp_path / "shard_0.log"
+    run_rule(SimpleNamespace(log=[str(log)], rule="twin_shard"), lambda sm: body())
+    return log.read_text().splitlines()
+
+
+def test_implausible_shard_warning_reaches_the_shard_log(tmp_path):
+    from twinfalsify.runs.protocol_twin import ProtocolTwin
+
+    x0, plan, actions = _study_bits()
+    twin = ProtocolTwin("faulty", [*FAULTY_TWIN, "--mode=implausible:%2=0"], env=ENV,
+                        progress=False, retries=0)
+    lines = _in_rule(tmp_path, lambda: run_shard(twin, plan, 0, x0, actions))
+    assert any("WARNING: twin faulty shard 0:" in ln and "runs implausible" in ln
+               for ln in lines), lines
+
+
+def test_mixed_twin_versions_are_logged_as_a_warning(tmp_path):
+    from twinfalsify.runs.plan import twin_hellos
+
+    hellos = [{"name": "t", "version": "1"}, {"name": "t", "version": "2"}]
+    lines = _in_rule(tmp_path, lambda: twin_hellos(hellos))
+    assert any("WARNING: twin runs come from different twin versions" in ln for ln in lines)
+
+
+def test_an_answer_line_over_the_cap_is_a_protocol_error_not_a_memory_blow_up(monkeypatch):
+    """A twin that writes a huge line (here: over a cap lowered to 64 kB) gets the run an
+    error naming the cap; the line is not read into memory."""
+    from twinfalsify.runs import runner
+
+    monkeypatch.setattr(runner, "MAX_LINE_BYTES", 64 << 10)
+    monkeypatch.setattr(runner._Worker.ask, "__defaults__", (64 << 10,))
+    x0, doses, seeds = _many(2)
+    seeds = np.array([3, 4], dtype=np.uint64)
+    script = ("import sys, runpy\n"
+              "real = sys.stdout.write\n"
+              "def write(s):\n"
+              "    if '\"op\":\"result\"' in s and '\"id\":\"0.' in s:\n"
+              "        s = 'x' * (1 << 20) + s\n"
+              "    return real(s)\n"
+              "sys.stdout.write = write\n"
+              f"sys.argv = [{FAULTY_TWIN[1]!r}]\n"
+              f"runpy.run_path({FAULTY_TWIN[1]!r}, run_name='__main__')\n")
+    res = simulate_via_protocol([FAULTY_TWIN[0], "-c", script], x0, doses, seeds, env=ENV,
+                                retries=0, progress=False, fail_fast_runs=0)
+    assert list(res.status) == ["error", "ok"], list(res.message)  # run 0's answer is huge
+    assert "answer line longer than 65,536 bytes, the cap for this request" in res.message[0]
