@@ -550,3 +550,23 @@ def test_an_answer_line_over_the_cap_is_a_protocol_error_not_a_memory_blow_up(mo
                                 retries=0, progress=False, fail_fast_runs=0)
     assert list(res.status) == ["error", "ok"], list(res.message)  # run 0's answer is huge
     assert "answer line longer than 65,536 bytes, the cap for this request" in res.message[0]
+
+
+def test_figure_files_are_byte_identical_across_runs(tmp_path):
+    """The same figure saved twice, seconds apart (two runs of a study), gives the same bytes
+    in PNG and PDF: no creation date in the files, so a checksum of results/ is stable."""
+    import matplotlib.pyplot as plt
+
+    from twinfalsify.figures import save_all
+
+    def draw(folder):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1, 2], [1, 3, 2], marker="o")
+        ax.set_title("HR")
+        save_all(fig, folder / "f.png", folder / "f.pdf")
+
+    draw(tmp_path / "a")
+    time.sleep(1.1)  # a PDF's creation date has one-second resolution
+    draw(tmp_path / "b")
+    for name in ("f.png", "f.pdf"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()

@@ -357,3 +357,25 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
     assert (twins / "ext" / "results.parquet").stat().st_mtime_ns != before[
         twins / "ext" / "results.parquet"]
     assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
+
+
+def test_a_shard_asking_slurm_for_more_than_a_day_is_warned_about(study):
+    """The command twin budgeted at Pulse speed with no useful timeout: its shards' derived
+    Slurm time limit exceeds a day; said once, with a WARNING: line, when jobs are planned."""
+    repo, work, config, cfg, _ = study
+    original = config.read_text()
+    slow = {**cfg, "twins": {**cfg["twins"], "ext": {**cfg["twins"]["ext"],
+                                                      "timeout_s": 10**6}}}
+    config.write_text(yaml.safe_dump(slow))
+    try:
+        done = _snakemake(repo, work, config, "-n", "--forcerun",
+                          *sorted(str(p.relative_to(work)) for p in (
+                              work / "results" / cfg["study"] / "twins" / "ext" / "shards"
+                          ).glob("*.parquet")), timeout=300)
+    finally:
+        config.write_text(original)
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    warned = [ln for ln in out.splitlines() if ln.startswith("WARNING: twin ext: shard")]
+    assert len(warned) == 1 and "minutes (" in warned[0] and "days)" in warned[0], warned
+    assert not [ln for ln in out.splitlines() if ln.startswith("WARNING: twin oracle")]

@@ -157,8 +157,8 @@ NEVER_LEFT_OUT = {"twinfalsify.inference.hoeffding"}  # its radius draws the fig
 # biased or fitted without ``protocol``) never runs it, although the shard script imports
 # it (the registry reads the runner's default breaker settings, which apply to protocol
 # twins only, and checks a command twin's command; the plan tells a protocol twin apart by
-# type). Left out of such a twin's shards, so an edit of the client reruns only the shards
-# of twins that run through it.
+# type); no other rule script starts a twin. Left out of every rule but the shards of twins
+# that run through it (workflow/rules/common.smk), so an edit of the client reruns only those.
 PROTOCOL_CLIENT_MODULES = ("twinfalsify.runs.runner", "twinfalsify.runs.command",
                            "twinfalsify.runs.protocol_twin", "twinfalsify.runs.protocol")
 

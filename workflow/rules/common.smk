@@ -88,6 +88,11 @@ if not getattr(workflow, "dryrun", False) and (_unwritable := unwritable(R)):
     raise ValueError(_unwritable)
 
 
+# the rule scripts that run twins; the protocol client (provenance.PROTOCOL_CLIENT_MODULES)
+# counts only for theirs, and only for a twin that runs through it (shard_code)
+TWIN_SCRIPTS = ("twin_shard", "twin_adaptive_shard")
+
+
 def code(script, extra=(), leave=()):
     """Fingerprint of the library modules ``scripts/<script>.py`` imports (transitively).
 
@@ -98,6 +103,8 @@ def code(script, extra=(), leave=()):
     """
     path = Path(workflow.basedir) / "scripts" / f"{script}.py"
     used, leave_out = code_scope(config, all_methods=script.startswith("calibration"))
+    if script not in TWIN_SCRIPTS:  # only a shard script starts twin processes
+        leave = (*leave, *PROTOCOL_CLIENT_MODULES)
     if "twinfalsify.inference.registry" in script_modules(path, SRC, extra):
         extra = (*extra, *used)
     return code_fingerprint(path, SRC, extra, [*leave_out, *leave])
@@ -234,13 +241,28 @@ def shard_runtime(wildcards, input, threads):
     over the workers, doubled for safety, at least 10 minutes."""
     spec = twin_spec(wildcards)
     served = spec["kind"] == "command" or spec.get("protocol")
-    return shard_runtime_minutes(
+    minutes = shard_runtime_minutes(
         json.loads(Path(input.plan).read_text()),
         int(wildcards.shard),
         SECONDS_PER_TWIN_HOUR[spec["kind"]],
         float(spec.get("timeout_s", 600.0)) if served else None,
         threads,
     )
+    if minutes > RUNTIME_WARN_MINUTES and wildcards.twin not in _RUNTIME_WARNED:
+        # said once per twin, when the jobs are planned: a queue may refuse such a job, or
+        # hold it for days
+        _RUNTIME_WARNED.add(wildcards.twin)
+        print(
+            f"WARNING: twin {wildcards.twin}: shard {wildcards.shard} asks Slurm for "
+            f"{minutes} minutes ({minutes / 1440:.1f} days); raise twin_runs.n_shards or the "
+            "twin's workers, or lower its timeout_s",
+            file=sys.stderr,
+        )
+    return minutes
+
+
+RUNTIME_WARN_MINUTES = 24 * 60  # a shard's Slurm time limit above a day is worth a warning
+_RUNTIME_WARNED = set()
 
 
 def mimic_data():
