@@ -134,6 +134,8 @@ def _leader_exited(pid: int) -> bool:
     Not reaping keeps its pid, which is also its process group's id (start_new_session),
     reserved, so a later kill of the group cannot reach an unrelated process.
     """
+    if not hasattr(os, "waitid"):  # (macOS): then only end of stdout or a timeout tells
+        return False
     try:
         return os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
     except ChildProcessError:  # already reaped
@@ -292,7 +294,7 @@ class _Worker:
                 if remaining <= 0:
                     raise _WorkerTimeout() from None
                 if exited_at is None:
-                    if self.proc.returncode is None and _leader_exited(self.proc.pid):
+                    if self.proc.returncode is not None or _leader_exited(self.proc.pid):
                         exited_at = time.monotonic()
                 elif time.monotonic() - exited_at > EXIT_DRAIN_S:
                     raise self._died() from None
