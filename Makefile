@@ -34,7 +34,7 @@ test-fast: $(STAMP)
 ## Build the study of CONFIG (default: the default study) and its browsable report:
 ## results/<study>/report.html, one self-contained file with every figure and caption.
 report: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG)
+	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG) --rerun-triggers mtime params input
 	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG) --report results/$(STUDY)/report.html
 
 lint: $(STAMP)

@@ -11,6 +11,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -203,6 +208,24 @@ def test_duplicated_yaml_key_names_key_and_both_lines(tmp_path):
     assert load_yaml_strict(path) == {"a": {"b": 1}, "c": [1, {"b": 2}]}
 
 
+def test_yaml_merge_keys_are_accepted_and_duplicates_still_refused(tmp_path):
+    """``<<: *anchor`` merges defaults the mapping may override (YAML's merge rule); a key
+    the mapping itself writes twice is still refused, next to a merge key too."""
+    path = tmp_path / "study.yaml"
+    path.write_text("base: &twin {kind: oracle, timeout_s: 30}\n"
+                    "extra: &more {workers: 2}\n"
+                    "twins:\n"
+                    "  a:\n    <<: *twin\n    timeout_s: 60\n"
+                    "  b:\n    <<: [*twin, *more]\n")
+    cfg = load_yaml_strict(path)
+    assert cfg["twins"] == {"a": {"kind": "oracle", "timeout_s": 60},
+                            "b": {"kind": "oracle", "timeout_s": 30, "workers": 2}}
+    path.write_text("base: &twin {kind: oracle}\ntwins:\n  a:\n    <<: *twin\n"
+                    "    seed: 1\n    seed: 2\n")
+    with pytest.raises(ContractError, match=r"key 'seed' is written twice \(lines 5 and 6\)"):
+        load_yaml_strict(path)
+
+
 def test_n_shards_is_capped_at_the_number_of_actions():
     assert shard_count({"twin_runs": {"n_shards": 4}}) == (4, None)
     assert shard_count({"twin_runs": {"n_shards": N_ACTIONS}}) == (N_ACTIONS, None)
@@ -346,3 +369,205 @@ def test_twin_context_stays_valid_when_the_study_folder_moves(tmp_path):
     twin = make_twin("f", {"kind": "fitted"}, new / "twin_context.json")
     x0, doses, seeds = _study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
     assert np.isfinite(twin.simulate(x0, doses, seeds).features).all()
+
+
+# ---- a twin's child holding its pipes -----------------------------------------------------
+
+DAEMON_TWIN = [FAULTY_TWIN[0], str(Path(FAULTY_TWIN[1]).with_name("daemon_twin.py"))]
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, killed but not yet reaped by init, counts as ended)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state != "Z"
+
+
+def _ended(pids: list[int], within_s: float = 3.0) -> bool:
+    """Whether every pid has ended (a SIGKILL takes effect asynchronously: wait a little)."""
+    deadline = time.monotonic() + within_s
+    while any(_alive(p) for p in pids):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.fixture
+def child_pids(tmp_path):
+    """The pid file of daemon_twin.py; children still alive afterwards are killed."""
+    pid_file = tmp_path / "children.pid"
+    yield pid_file
+    for pid in (int(p) for p in pid_file.read_text().split()) if pid_file.exists() else ():
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("escape", [False, True], ids=["in_group", "escaped"])
+def test_child_holding_stdout_does_not_stall_the_shard(child_pids, escape):
+    """The twin answers and exits; its child keeps stdout open for 120 s. The shard ends
+    in seconds, and a child still in the twin's process group is killed with it."""
+    cmd = [*DAEMON_TWIN, f"--pid-file={child_pids}", *(["--escape"] if escape else [])]
+    t0 = time.monotonic()
+    res = simulate_via_protocol(cmd, *_many(6), env=ENV, workers=2, timeout_s=30,
+                                progress=False)
+    took = time.monotonic() - t0
+    assert list(res.status) == ["ok"] * 6
+    assert took < 15, took
+    pids = [int(p) for p in child_pids.read_text().split()]
+    assert len(pids) == 2
+    if not escape:
+        assert _ended(pids), pids
+
+
+def test_crash_while_a_child_holds_stdout_is_a_crash_not_a_timeout(child_pids):
+    """The twin crashes on every run while its child keeps stdout open: each attempt ends
+    as a crash within seconds, not after the run's time limit (60 s here)."""
+    cmd = [*DAEMON_TWIN, f"--pid-file={child_pids}", "--mode=crash:3"]
+    x0, doses, seeds = _many(3)
+    seeds = np.array([3, 5, 7], dtype=np.uint64)
+    t0 = time.monotonic()
+    res = simulate_via_protocol(cmd, x0, doses, seeds, env=ENV, timeout_s=60, retries=1,
+                                progress=False)
+    took = time.monotonic() - t0
+    assert list(res.status) == ["error", "ok", "ok"]
+    assert "worker exited with code 3" in res.message[0]
+    assert took < 20, took
+    assert _ended([int(p) for p in child_pids.read_text().split()])
+
+
+# ---- full disk ----------------------------------------------------------------------------
+
+_WRITE_BIG = """
+import resource, sys
+import numpy as np, pandas as pd
+from twinfalsify import io
+from twinfalsify.schema import ContractError
+kind, path = sys.argv[1], sys.argv[2]
+resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # ulimit -f: 200 kB
+df = pd.DataFrame(np.random.default_rng(0).normal(size=(50_000, 8)), columns=list("abcdefgh"))
+try:
+    if kind == "parquet":
+        io.write_parquet(df, path)
+    elif kind == "csv":
+        io.write_csv(df, path)
+    elif kind == "text":
+        io.write_text(df.to_csv(), path)
+    else:
+        import matplotlib.pyplot as plt
+        from twinfalsify.figures import save_all
+        fig, ax = plt.subplots()
+        ax.plot(df["a"].to_numpy(), df["b"].to_numpy(), ".")
+        save_all(fig, path)
+except ContractError as exc:
+    print(exc)
+    sys.exit(2)
+"""
+
+
+@pytest.mark.parametrize("kind,name", [("parquet", "runs.parquet"), ("csv", "t.csv"),
+                                       ("text", "t.txt"), ("figure", "f.pdf")])
+def test_full_disk_is_one_line_and_leaves_no_temporary_file(tmp_path, kind, name):
+    """A write that hits the file size limit (as a full disk would) ends in one line naming
+    the file and the folder's free space; no temporary file stays behind. A later write
+    that succeeds also removes a temporary file an earlier, killed writer left."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "results" / name
+    done = subprocess.run([sys.executable, "-c", _WRITE_BIG, kind, str(out)], env={
+        **os.environ, **ENV}, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    line = done.stdout.strip()
+    assert "\n" not in line and line.startswith(f"{out}: cannot write: File too large ("), line
+    assert f"free in {out.parent})" in line
+    assert sorted(p.name for p in out.parent.iterdir()) == []  # no half file, no .tmp
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale = out.parent / f".{name}.{dead}.tmp"  # left by a writer killed with -9
+    stale.write_bytes(b"x" * 1000)
+    done = subprocess.run([sys.executable, "-c", _WRITE_BIG.replace("200_000", "-1"), kind,
+                           str(out)], env={**os.environ, **ENV}, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in out.parent.iterdir()) == [name]
+
+
+# ---- smaller: warnings in the shard log, answer line cap ----------------------------------
+
+
+def _in_rule(tmp_path, body):
+    """Run ``body`` as a rule script does (io.run_rule: console and the rule's log file);
+    return the log file's lines."""
+    from types import SimpleNamespace
+
+    from twinfalsify.io import run_rule
+
+    log = tmp_path / "shard_0.log"
+    run_rule(SimpleNamespace(log=[str(log)], rule="twin_shard"), lambda sm: body())
+    return log.read_text().splitlines()
+
+
+def test_implausible_shard_warning_reaches_the_shard_log(tmp_path):
+    from twinfalsify.runs.protocol_twin import ProtocolTwin
+
+    x0, plan, actions = _study_bits()
+    twin = ProtocolTwin("faulty", [*FAULTY_TWIN, "--mode=implausible:%2=0"], env=ENV,
+                        progress=False, retries=0)
+    lines = _in_rule(tmp_path, lambda: run_shard(twin, plan, 0, x0, actions))
+    assert any("WARNING: twin faulty shard 0:" in ln and "runs implausible" in ln
+               for ln in lines), lines
+
+
+def test_mixed_twin_versions_are_logged_as_a_warning(tmp_path):
+    from twinfalsify.runs.plan import twin_hellos
+
+    hellos = [{"name": "t", "version": "1"}, {"name": "t", "version": "2"}]
+    lines = _in_rule(tmp_path, lambda: twin_hellos(hellos))
+    assert any("WARNING: twin runs come from different twin versions" in ln for ln in lines)
+
+
+def test_an_answer_line_over_the_cap_is_a_protocol_error_not_a_memory_blow_up(monkeypatch):
+    """A twin that writes a huge line (here: over a cap lowered to 64 kB) gets the run an
+    error naming the cap; the line is not read into memory."""
+    from twinfalsify.runs import runner
+
+    monkeypatch.setattr(runner, "MAX_LINE_BYTES", 64 << 10)
+    monkeypatch.setattr(runner._Worker.ask, "__defaults__", (64 << 10,))
+    x0, doses, seeds = _many(2)
+    seeds = np.array([3, 4], dtype=np.uint64)
+    script = ("import sys, runpy\n"
+              "real = sys.stdout.write\n"
+              "def write(s):\n"
+              "    if '\"op\":\"result\"' in s and '\"id\":\"0.' in s:\n"
+              "        s = 'x' * (1 << 20) + s\n"
+              "    return real(s)\n"
+              "sys.stdout.write = write\n"
+              f"sys.argv = [{FAULTY_TWIN[1]!r}]\n"
+              f"runpy.run_path({FAULTY_TWIN[1]!r}, run_name='__main__')\n")
+    res = simulate_via_protocol([FAULTY_TWIN[0], "-c", script], x0, doses, seeds, env=ENV,
+                                retries=0, progress=False, fail_fast_runs=0)
+    assert list(res.status) == ["error", "ok"], list(res.message)  # run 0's answer is huge
+    assert "answer line longer than 65,536 bytes, the cap for this request" in res.message[0]
+
+
+def test_figure_files_are_byte_identical_across_runs(tmp_path):
+    """The same figure saved twice, seconds apart (two runs of a study), gives the same bytes
+    in PNG and PDF: no creation date in the files, so a checksum of results/ is stable."""
+    import matplotlib.pyplot as plt
+
+    from twinfalsify.figures import save_all
+
+    def draw(folder):
+        fig, ax = plt.subplots()
+        ax.plot([0, 1, 2], [1, 3, 2], marker="o")
+        ax.set_title("HR")
+        save_all(fig, folder / "f.png", folder / "f.pdf")
+
+    draw(tmp_path / "a")
+    time.sleep(1.1)  # a PDF's creation date has one-second resolution
+    draw(tmp_path / "b")
+    for name in ("f.png", "f.pdf"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()

@@ -25,6 +25,7 @@ import re
 import shutil
 import subprocess
 import sys
+from shlex import quote as shlex_quote
 
 import pandas as pd
 import pytest
@@ -267,3 +268,114 @@ def test_what_reruns_after_which_change(study):
     for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
         assert rule not in jobs, (rule, jobs.get(rule))
     assert _dry_run(work, config, repo) == {}
+
+
+# ---- over-broad reruns, reruns on every start, the documented remedy ----------------------
+
+
+@pytest.mark.parametrize("module", ["runs/runner.py", "runs/command.py"])
+def test_a_protocol_client_edit_reruns_no_in_process_twin(study, module):
+    """The builtin twin simulated in the shard's own process (biased) never runs the protocol
+    client: editing it reruns the shards of the twins that run through it (the served oracle,
+    the command twin), none of biased's."""
+    repo, work, config, cfg, _ = study
+    f = repo / "src" / "twinfalsify" / module
+    text = f.read_text()
+    f.write_text(text + "\n# an edit\n")
+    try:
+        jobs = dry_run(repo, work, config, *CONTENT_ONLY)
+    finally:
+        f.write_text(text)
+    shards = jobs.get("twin_shard", [])
+    assert {o.split("/twins/")[1].split("/")[0] for o in shards} == {"oracle", "ext"}, jobs
+    assert not [o for outs in jobs.values() for o in outs if "/twins/biased/" in o], jobs
+    assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
+
+
+def test_a_command_as_a_list_is_the_same_twin(study):
+    """The command twin's command written as a list of words instead of one string: the same
+    words run, so nothing reruns."""
+    import shlex
+
+    repo, work, config, cfg, _ = study
+    original = config.read_text()
+    listed = {**cfg, "twins": {**cfg["twins"], "ext": {
+        **cfg["twins"]["ext"], "command": shlex.split(cfg["twins"]["ext"]["command"])}}}
+    config.write_text(yaml.safe_dump(listed))
+    try:
+        assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
+    finally:
+        config.write_text(original)
+
+
+@pytest.mark.parametrize("code", [".", "results", "results/test/twins"])
+def test_a_code_path_holding_the_results_is_refused_when_the_config_is_read(study, code):
+    """``code: [.]`` would put what the study writes into the twin's fingerprint (a rerun on
+    every start): one line when the config is read, no job runs."""
+    repo, work, config, cfg, _ = study
+    original = config.read_text()
+    bad = {**cfg, "twins": {**cfg["twins"], "ext": {**cfg["twins"]["ext"], "code": [code]}}}
+    config.write_text(yaml.safe_dump(bad))
+    try:
+        done = _snakemake(repo, work, config, "-n", timeout=300)
+    finally:
+        config.write_text(original)
+    out = done.stdout + done.stderr
+    assert done.returncode != 0
+    line = next(ln for ln in out.splitlines() if ln.startswith("invalid config:"))
+    assert line.startswith(f"invalid config: twins.ext.code: {code!r} ")
+    assert "the results folder results" in line and "rerun it on every start" in line
+
+
+def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
+    """The docs' one command for a change the workflow cannot see (run-workflow.md, "Rerun
+    one twin"), run as written: the twin's shards and what follows are rebuilt, no shard
+    or result of another twin; afterwards nothing is left to do."""
+    repo, work, config, cfg, _ = study
+    doc = (repo / "docs" / "how-to" / "run-workflow.md").read_text()
+    block = doc.split("<!-- rerun-one-twin -->", 1)[1].split("```bash\n", 1)[1].split("```")[0]
+    command = block.strip()
+    assert command.startswith("snakemake ") and "\n" not in command
+    study_name = cfg["study"]
+    (work / "config").mkdir(exist_ok=True)
+    shutil.copy(config, work / "config" / f"{study_name}.yaml")
+    command = command.replace("<study>", study_name).replace("<twin>", "ext").replace(
+        "snakemake ", f"{shlex_quote(sys.executable)} -m snakemake -s "
+                     f"{shlex_quote(str(repo / 'Snakefile'))} ", 1)
+    twins = work / "results" / study_name / "twins"
+    before = {p: p.stat().st_mtime_ns for p in twins.rglob("*") if p.is_file()}
+    done = subprocess.run(command, shell=True, cwd=work, capture_output=True, text=True,
+                          timeout=1200, env={**os.environ, "PYTHONPATH": str(repo / "src"),
+                                             "MPLBACKEND": "Agg"})
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    changed = {p.relative_to(twins).parts[0] for p, t in before.items()
+               if p.exists() and p.stat().st_mtime_ns != t}
+    assert changed == {"ext"}, changed
+    shards = sorted((twins / "ext" / "shards").glob("*.parquet"))
+    assert len(shards) == cfg["twin_runs"]["n_shards"]
+    assert all(p.stat().st_mtime_ns != before[p] for p in shards)
+    assert (twins / "ext" / "results.parquet").stat().st_mtime_ns != before[
+        twins / "ext" / "results.parquet"]
+    assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
+
+
+def test_a_shard_asking_slurm_for_more_than_a_day_is_warned_about(study):
+    """The command twin budgeted at Pulse speed with no useful timeout: its shards' derived
+    Slurm time limit exceeds a day; said once, with a WARNING: line, when jobs are planned."""
+    repo, work, config, cfg, _ = study
+    original = config.read_text()
+    slow = {**cfg, "twins": {**cfg["twins"], "ext": {**cfg["twins"]["ext"],
+                                                      "timeout_s": 10**6}}}
+    config.write_text(yaml.safe_dump(slow))
+    try:
+        done = _snakemake(repo, work, config, "-n", "--forcerun",
+                          *sorted(str(p.relative_to(work)) for p in (
+                              work / "results" / cfg["study"] / "twins" / "ext" / "shards"
+                          ).glob("*.parquet")), timeout=300)
+    finally:
+        config.write_text(original)
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    warned = [ln for ln in out.splitlines() if ln.startswith("WARNING: twin ext: shard")]
+    assert len(warned) == 1 and "minutes (" in warned[0] and "days)" in warned[0], warned
+    assert not [ln for ln in out.splitlines() if ln.startswith("WARNING: twin oracle")]

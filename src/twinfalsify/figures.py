@@ -13,18 +13,27 @@ import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
+from twinfalsify.io import write_atomic  # noqa: E402
 from twinfalsify.schema import OUTCOMES  # noqa: E402
 
 STYLE = {"context": "paper", "style": "whitegrid", "font_scale": 1.1}
 
 
+# No creation date in the files: two runs of a study give byte-identical figures (PNG
+# carries none; PDF and SVG would carry the time of the run)
+_FIXED_METADATA = {"pdf": {"CreationDate": None}, "svg": {"Date": None}}
+
+
+def _savefig(fig: plt.Figure, path: Path) -> None:
+    fmt = path.suffix.lstrip(".").lower()
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format=fmt, dpi=200, bbox_inches="tight",
+                                               metadata=_FIXED_METADATA.get(fmt)))
+
+
 def save(fig: plt.Figure, path: str | Path) -> None:
-    """Write the figure (format from the suffix) atomically."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=200, bbox_inches="tight")
+    """Write the figure (format from the suffix) atomically, without a creation date."""
+    _savefig(fig, Path(path))
     plt.close(fig)
-    tmp.replace(path)
 
 
 def pvalue_boxen(
@@ -122,11 +131,7 @@ def unit_label(feature: str) -> str:
 def save_all(fig: plt.Figure, *paths: str | Path) -> None:
     """Save one figure to several files (PNG and PDF), then close it."""
     for p in paths:
-        path = Path(p)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-        fig.savefig(tmp, dpi=200, bbox_inches="tight")
-        tmp.replace(path)
+        _savefig(fig, Path(p))
     plt.close(fig)
 
 

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import errno
+import glob
 import json
 import logging
 import math
 import os
+import re
+import shutil
 import sys
 import traceback
 from collections.abc import Callable
@@ -23,29 +27,88 @@ def _tmp(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
-def write_parquet(df: pd.DataFrame, path: str | Path) -> None:
-    """Write atomically (temp file + rename) so a killed job leaves no half file."""
+# errors that mean "no room": a full disk, a file size limit (ulimit -f), a disk quota
+_NO_ROOM = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}
+
+
+def _no_room(exc: BaseException) -> str | None:
+    """The reason, when ``exc`` says the disk (or a size limit) has no room, else None.
+
+    pyarrow raises OSError without an errno, only the C library's text, so that is
+    matched too."""
+    if isinstance(exc, OSError) and exc.errno in _NO_ROOM:
+        return os.strerror(exc.errno)
+    text = str(exc)
+    return next((os.strerror(code) for code in sorted(_NO_ROOM)
+                 if os.strerror(code) in text), None)
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if n < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"
+
+
+def _remove_stale_tmps(path: Path) -> None:
+    """Remove hidden temporary files of ``path`` left by writers that no longer run (a job
+    killed with -9 cannot clean up after itself)."""
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.tmp")
+    for old in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        m = pattern.fullmatch(old.name)
+        if m is None:
+            continue
+        pid = int(m.group(1))
+        if pid != os.getpid():
+            try:
+                os.kill(pid, 0)
+                continue  # its writer still runs
+            except ProcessLookupError:
+                pass
+            except PermissionError:
+                continue  # another user's process
+        old.unlink(missing_ok=True)
+
+
+def write_atomic(path: str | Path, write: Callable[[Path], object]) -> None:
+    """Write ``path`` atomically: ``write(tmp)`` fills a hidden temporary file next to it,
+    which then replaces ``path``, so a killed job leaves no half file.
+
+    The temporary file is removed on any failure; a full disk (or ``ulimit -f``) is one
+    ContractError naming the file and the free space of its folder. After a successful
+    write, temporary files of earlier writers of ``path`` that are gone are removed too.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp(path)
-    df.to_parquet(tmp, index=False)
-    tmp.replace(path)
+    try:
+        write(tmp)
+        tmp.replace(path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        reason = _no_room(exc) if isinstance(exc, Exception) else None
+        if reason is None:
+            raise
+        try:
+            free = f"{_size(shutil.disk_usage(path.parent).free)} free in {path.parent}"
+        except OSError:
+            free = f"free space of {path.parent} unknown"
+        raise ContractError(f"{path}: cannot write: {reason} ({free})") from None
+    _remove_stale_tmps(path)
+
+
+def write_parquet(df: pd.DataFrame, path: str | Path) -> None:
+    """Write atomically (temp file + rename) so a killed job leaves no half file."""
+    write_atomic(path, lambda tmp: df.to_parquet(tmp, index=False))
 
 
 def write_csv(df: pd.DataFrame, path: str | Path, **kwargs: Any) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    df.to_csv(tmp, index=False, **kwargs)
-    tmp.replace(path)
+    write_atomic(path, lambda tmp: df.to_csv(tmp, index=False, **kwargs))
 
 
 def write_text(text: str, path: str | Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def write_json(data: Any, path: str | Path) -> None:
@@ -183,6 +246,8 @@ def load_yaml_strict(path: str | Path) -> Any:
 
     PyYAML keeps the last value silently; a study config with ``alpha`` twice would then
     run with whichever came last. ContractError names the file, the key and both lines.
+    Merge keys (``<<: *anchor``) are allowed: a key of the merged mapping that the mapping
+    itself sets again is an override, as YAML defines it, not a duplicate.
     """
     import yaml
 
@@ -192,6 +257,10 @@ def load_yaml_strict(path: str | Path) -> Any:
     def mapping(loader: Strict, node: yaml.MappingNode, deep: bool = False) -> dict:
         seen: dict[Any, int] = {}
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                # ``<<: *anchor``: its keys are defaults the mapping's own keys may
+                # override (YAML's merge rule), not duplicates; PyYAML merges them below
+                continue
             key = loader.construct_object(key_node, deep=deep)
             line = key_node.start_mark.line + 1
             if key in seen:

@@ -1,4 +1,5 @@
 import json
+import shlex
 from pathlib import Path
 
 import sys
@@ -9,6 +10,7 @@ SRC = Path(workflow.basedir) / "src"
 sys.path.insert(0, str(SRC))
 from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
 from twinfalsify.provenance import (
+    PROTOCOL_CLIENT_MODULES,
     code_fingerprint,
     code_scope,
     script_modules,
@@ -48,6 +50,19 @@ if _shard_warning:
 LOGS = f"{R}/logs"
 
 
+def _code_paths_problem():
+    from twinfalsify.runs.command import code_paths_error
+
+    for name, spec in config["twins"].items():
+        if problem := code_paths_error(name, spec, "results"):
+            return problem
+    return None
+
+
+if _problem := _code_paths_problem():
+    raise ValueError(f"invalid config: {_problem}")
+
+
 def _figure_ids_problem():
     """Figure hyp_ids of the config against the study's hypotheses, once they exist."""
     hyps = Path(f"{R}/design/hypotheses.parquet")
@@ -73,7 +88,12 @@ if not getattr(workflow, "dryrun", False) and (_unwritable := unwritable(R)):
     raise ValueError(_unwritable)
 
 
-def code(script, extra=()):
+# the rule scripts that run twins; the protocol client (provenance.PROTOCOL_CLIENT_MODULES)
+# counts only for theirs, and only for a twin that runs through it (shard_code)
+TWIN_SCRIPTS = ("twin_shard", "twin_adaptive_shard")
+
+
+def code(script, extra=(), leave=()):
     """Fingerprint of the library modules ``scripts/<script>.py`` imports (transitively).
 
     A params value: Snakemake reruns a job whose params changed, so a change in library
@@ -83,9 +103,11 @@ def code(script, extra=()):
     """
     path = Path(workflow.basedir) / "scripts" / f"{script}.py"
     used, leave_out = code_scope(config, all_methods=script.startswith("calibration"))
+    if script not in TWIN_SCRIPTS:  # only a shard script starts twin processes
+        leave = (*leave, *PROTOCOL_CLIENT_MODULES)
     if "twinfalsify.inference.registry" in script_modules(path, SRC, extra):
         extra = (*extra, *used)
-    return code_fingerprint(path, SRC, extra, leave_out)
+    return code_fingerprint(path, SRC, extra, [*leave_out, *leave])
 
 
 wildcard_constraints:
@@ -155,7 +177,10 @@ SECONDS_PER_TWIN_HOUR = {
 def shard_spec(wildcards):
     """The twin's spec without its execution-only keys, as a params value (canon)."""
     spec = config["twins"][wildcards.twin]
-    return canon({k: v for k, v in spec.items() if k not in EXECUTION_KEYS})
+    spec = {k: v for k, v in spec.items() if k not in EXECUTION_KEYS}
+    if isinstance(spec.get("command"), str):  # a string runs as its words: the same params
+        spec["command"] = shlex.split(spec["command"])
+    return canon(spec)
 
 
 def served_modules(twin):
@@ -165,7 +190,7 @@ def served_modules(twin):
     if spec.get("protocol") and spec["kind"] != "command":
         return ["twinfalsify.runs.serve"]
     command = spec.get("command") or []
-    words = command.split() if isinstance(command, str) else command
+    words = shlex.split(command) if isinstance(command, str) else command
     return [w for w in words if w.startswith("twinfalsify.")]
 
 
@@ -178,8 +203,11 @@ def shard_code(twin, script="twin_shard"):
     it runs (its script, files its command names, its spec's `code:` list; contents only),
     so editing them reruns exactly its shards and what follows (twinfalsify.runs.command).
     """
-    fingerprint = code(script, served_modules(twin))
-    if config["twins"][twin]["kind"] != "command":
+    spec = config["twins"][twin]
+    in_process = spec["kind"] != "command" and not spec.get("protocol")
+    fingerprint = code(script, served_modules(twin),
+                       PROTOCOL_CLIENT_MODULES if in_process else ())
+    if spec["kind"] != "command":
         return fingerprint
     if twin not in _COMMAND_CODE:  # once per parse, not once per shard job
         from twinfalsify.runs.command import command_fingerprint
@@ -213,13 +241,28 @@ def shard_runtime(wildcards, input, threads):
     over the workers, doubled for safety, at least 10 minutes."""
     spec = twin_spec(wildcards)
     served = spec["kind"] == "command" or spec.get("protocol")
-    return shard_runtime_minutes(
+    minutes = shard_runtime_minutes(
         json.loads(Path(input.plan).read_text()),
         int(wildcards.shard),
         SECONDS_PER_TWIN_HOUR[spec["kind"]],
         float(spec.get("timeout_s", 600.0)) if served else None,
         threads,
     )
+    if minutes > RUNTIME_WARN_MINUTES and wildcards.twin not in _RUNTIME_WARNED:
+        # said once per twin, when the jobs are planned: a queue may refuse such a job, or
+        # hold it for days
+        _RUNTIME_WARNED.add(wildcards.twin)
+        print(
+            f"WARNING: twin {wildcards.twin}: shard {wildcards.shard} asks Slurm for "
+            f"{minutes} minutes ({minutes / 1440:.1f} days); raise twin_runs.n_shards or the "
+            "twin's workers, or lower its timeout_s",
+            file=sys.stderr,
+        )
+    return minutes
+
+
+RUNTIME_WARN_MINUTES = 24 * 60  # a shard's Slurm time limit above a day is worth a warning
+_RUNTIME_WARNED = set()
 
 
 def mimic_data():

@@ -10,7 +10,9 @@ Fingerprint (:func:`command_fingerprint`, a param of the twin's shard jobs): SHA
 the bytes of every file the command names that exists (its script, a model file passed as
 an argument, the program itself when given as a path), of the module file of ``python -m
 module``, and of every file under the paths listed in the spec's ``code:`` (files or
-folders). Editing any of them reruns exactly that twin's shards and what follows; restoring
+folders; hidden folders and compiled Python files skipped; a path holding the results
+folder is refused at parse time, :func:`code_paths_error`). Editing any of them reruns
+exactly that twin's shards and what follows; restoring
 the same bytes (``git checkout``) reruns nothing, since only contents count, never times.
 Not tracked: files the twin opens without naming them in its command or in ``code:``
 (other modules of its package, its data, the libraries it imports), and programs found on
@@ -166,12 +168,33 @@ def _code_paths(spec: Mapping[str, Any]) -> list[str]:
     return [code] if isinstance(code, str) else [str(c) for c in code]
 
 
+def code_paths_error(name: str, spec: Mapping[str, Any], results: str | Path) -> str | None:
+    """One line when a ``code:`` path of a command twin holds the results folder (or lies
+    inside it), else None.
+
+    What the study writes would then be part of the twin's fingerprint: every run would
+    change it, and every start would rerun the twin.
+    """
+    if spec.get("kind") != "command":
+        return None
+    out = Path(results).resolve()
+    for c in _code_paths(spec):
+        here = Path(c).resolve()
+        if out.is_relative_to(here) or here.is_relative_to(out):
+            where = "holds" if out.is_relative_to(here) else "lies inside"
+            return (f"twins.{name}.code: {c!r} {where} the results folder {results}: what the "
+                    "study writes would change the twin's fingerprint and rerun it on every "
+                    "start; list the twin's own files or folders instead")
+    return None
+
+
 def _files_under(path: Path) -> Iterable[Path]:
     if path.is_file():
         yield path
         return
     for root, dirs, files in os.walk(path):
-        dirs[:] = sorted(d for d in dirs if d not in SKIP_DIRS)
+        # hidden folders (.git, .snakemake, .venv, caches) are tools' state, not the twin
+        dirs[:] = sorted(d for d in dirs if d not in SKIP_DIRS and not d.startswith("."))
         for f in sorted(files):
             p = Path(root) / f
             if p.suffix not in SKIP_SUFFIXES:

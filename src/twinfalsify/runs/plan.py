@@ -291,8 +291,11 @@ def run_shard(
     bad = np.flatnonzero(status == "implausible")
     if bad.size:
         message = np.concatenate([r[2] for r in results])
-        print(implausible_warning(twin.name, shard, bad.size, status.size, message[bad[0]]),
-              file=log if log is not None else sys.stderr, flush=True)
+        line = implausible_warning(twin.name, shard, bad.size, status.size, message[bad[0]])
+        if log is None or log is sys.stderr:  # in a rule: its log file and the console
+            logging.getLogger("twinfalsify").warning(line)
+        else:
+            print(line, file=log, flush=True)
     for (seq, _), (feats, status, message, clamped) in zip(jobs, results, strict=True):
         for s in range(1, len(seq) + 1):
             name = node_name(seq[:s])
@@ -351,7 +354,7 @@ def twin_hellos(hellos: list[dict | None]) -> dict:
     distinct = {json.dumps(h, sort_keys=True) for h in known}
     if len(distinct) == 1:
         return {"twin": known[0]}
-    log.warning("twin runs come from different twin versions: %s", sorted(distinct))
+    log.warning("WARNING: twin runs come from different twin versions: %s", sorted(distinct))
     return {"twin": {"per_shard": hellos}}
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 import os
 import queue
+import select
 import shlex
 import shutil
 import signal
@@ -41,7 +42,7 @@ import tempfile
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -64,6 +65,13 @@ STARTUP_TIMEOUT_S = 60.0  # a worker's hello may take max(timeout_s, this): star
 # (interpreter, engine libraries) is not simulation and must not eat the run's limit
 SHUTDOWN_GRACE_S = 5.0  # time a worker gets to answer "shutdown" and exit
 STDERR_TAIL_LINES = 20  # stderr lines kept per worker for error messages
+STDERR_LINE_CHARS = 4000  # and at most this much of each
+PIPE_POLL_S = 0.2  # the pipe threads and waits wake this often (stop flags, twin exit)
+EXIT_DRAIN_S = 1.0  # after the twin exits, time for what it wrote to arrive; then it died
+MAX_LINE_BYTES = 16 << 20  # an answer line may hold at most 16 MiB (a batch answer
+# gets MAX_LINE_BYTES_PER_RUN_HOUR per run-hour asked when that is more): a twin writing
+# without newlines is a protocol error, not an unbounded read into memory
+MAX_LINE_BYTES_PER_RUN_HOUR = 8 << 10
 DEFAULT_FAIL_FAST_RUNS = 20  # circuit breaker: stop when the first K runs all failed ...
 DEFAULT_MAX_RESTARTS = 10  # ... or workers were restarted R times before any run was ok:
 # a twin broken for every run (e.g. a log line on stdout) would otherwise fail all of a
@@ -116,8 +124,33 @@ def resolve_command(command: Sequence[str], env: Mapping[str, str] | None = None
     return cmd
 
 
+class _TooLong(str):
+    """Stands in the line queue for an answer line longer than the worker's cap."""
+
+
+def _leader_exited(pid: int) -> bool:
+    """Whether the process ``pid`` (our child) has exited, without reaping it.
+
+    Not reaping keeps its pid, which is also its process group's id (start_new_session),
+    reserved, so a later kill of the group cannot reach an unrelated process.
+    """
+    if not hasattr(os, "waitid"):  # (macOS): then only end of stdout or a timeout tells
+        return False
+    try:
+        return os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+    except ChildProcessError:  # already reaped
+        return True
+
+
 class _Worker:
-    """One twin subprocess with non-blocking (timed) line reads."""
+    """One twin subprocess with timed line reads and writes.
+
+    The twin runs in its own session (process group), and the whole group is killed when
+    the twin ends, times out or is dropped: a child the twin started (an engine, a shell
+    wrapper's process, a daemon) never outlives it. The pipes are read by threads that
+    wake every PIPE_POLL_S and stop when told, and written with a deadline, so a child
+    that escaped the group and keeps the twin's stdout open cannot stall the shard.
+    """
 
     def __init__(self, command: list[str], env: Mapping[str, str] | None) -> None:
         self.command = command
@@ -127,10 +160,7 @@ class _Worker:
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
-                text=True,
-                encoding="utf-8",
-                errors="replace",
-                bufsize=1,
+                bufsize=0,
                 env=dict(env) if env is not None else None,
                 # Own process group: a kill also reaches the twin's children
                 # (e.g. a shell wrapper's engine process).
@@ -140,9 +170,13 @@ class _Worker:
             raise FileNotFoundError(
                 f"cannot start twin command {shlex.join(command)}: {exc}"
             ) from exc
+        assert self.proc.stdin is not None
+        os.set_blocking(self.proc.stdin.fileno(), False)
         self.lines: queue.Queue[str | None] = queue.Queue()
         self.stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self.hello: dict[str, Any] = {}
+        self.max_line = MAX_LINE_BYTES  # set per request by ask()
+        self._stop = threading.Event()
         self._threads = [
             threading.Thread(target=self._read_stdout, daemon=True),
             threading.Thread(target=self._read_stderr, daemon=True),
@@ -150,23 +184,56 @@ class _Worker:
         for th in self._threads:
             th.start()
 
+    def _chunks(self, pipe: Any) -> Iterator[bytes]:
+        """The bytes of ``pipe`` as they come, until end of stream or until told to stop."""
+        fd = pipe.fileno()
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([fd], [], [], PIPE_POLL_S)
+                if not ready:
+                    continue
+                chunk = os.read(fd, 1 << 16)
+            except (OSError, ValueError):
+                return
+            if not chunk:
+                return
+            yield chunk
+
     def _read_stdout(self) -> None:
+        buf = bytearray()
+        skipping = False  # inside a line already reported as too long
         try:
-            assert self.proc.stdout is not None
-            for line in self.proc.stdout:
-                self.lines.put(line)
-        except (OSError, ValueError):
-            pass
+            for chunk in self._chunks(self.proc.stdout):
+                start = 0
+                while (end := chunk.find(b"\n", start)) >= 0:
+                    if skipping:
+                        skipping = False
+                    else:
+                        buf += chunk[start : end + 1]
+                        self.lines.put(buf.decode("utf-8", errors="replace"))
+                    buf.clear()
+                    start = end + 1
+                if not skipping:
+                    buf += chunk[start:]
+                    if len(buf) > self.max_line:
+                        # a broken twin writing without newlines must not fill the memory
+                        self.lines.put(_TooLong(bytes(buf[:80]).decode("utf-8", "replace")))
+                        buf.clear()
+                        skipping = True
+            if buf and not skipping:  # a last line without its newline
+                self.lines.put(buf.decode("utf-8", errors="replace"))
         finally:
             self.lines.put(None)  # end of stream
 
     def _read_stderr(self) -> None:
-        try:
-            assert self.proc.stderr is not None
-            for line in self.proc.stderr:
-                self.stderr_tail.append(line.rstrip("\n"))
-        except (OSError, ValueError):
-            pass
+        buf = b""
+        for chunk in self._chunks(self.proc.stderr):
+            *done, buf = (buf + chunk).split(b"\n")
+            buf = buf[-STDERR_LINE_CHARS:]
+            self.stderr_tail.extend(
+                ln[:STDERR_LINE_CHARS].decode("utf-8", "replace").rstrip("\r") for ln in done)
+        if buf:
+            self.stderr_tail.append(buf.decode("utf-8", "replace"))
 
     def tail(self) -> str:
         """The last stderr lines, for error messages ('' if none)."""
@@ -186,23 +253,58 @@ class _Worker:
             f"worker exited with code {code}" + (f"; stderr tail: {tail}" if tail else "")
         )
 
-    def ask(self, msg: dict[str, Any], timeout_s: float) -> dict[str, Any]:
-        """Send one message and wait for the next non-blank line (decoded)."""
+    def _send(self, data: bytes, deadline: float) -> None:
+        """Write ``data`` to the twin's stdin by ``deadline`` (a twin that stopped reading
+        must not block the caller)."""
+        assert self.proc.stdin is not None
+        fd = self.proc.stdin.fileno()
+        view = memoryview(data)
+        while view:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise _WorkerTimeout("the twin stopped reading its input")
+            _, ready, _ = select.select([], [fd], [], min(remaining, PIPE_POLL_S))
+            if not ready:
+                continue
+            try:
+                view = view[os.write(fd, view):]
+            except BlockingIOError:
+                continue
+
+    def ask(self, msg: dict[str, Any], timeout_s: float,
+            max_line: int = MAX_LINE_BYTES) -> dict[str, Any]:
+        """Send one message and wait for the next non-blank line (decoded).
+
+        An answer line longer than ``max_line`` bytes is a ProtocolError (it is not read
+        into memory); a twin that exited while a child of it holds its stdout counts as
+        died once the lines it wrote are read.
+        """
+        self.max_line = max_line
+        deadline = time.monotonic() + timeout_s
         try:
-            assert self.proc.stdin is not None
-            self.proc.stdin.write(encode(msg))
-            self.proc.stdin.flush()
+            self._send(encode(msg).encode("utf-8"), deadline)
         except (OSError, ValueError):  # broken pipe: the worker is gone
             raise self._died() from None
-        deadline = time.monotonic() + timeout_s
+        exited_at: float | None = None
         while True:
             remaining = deadline - time.monotonic()
             try:
-                line = self.lines.get(timeout=max(remaining, 0.0))
+                line = self.lines.get(timeout=max(min(remaining, PIPE_POLL_S), 0.0))
             except queue.Empty:
-                raise _WorkerTimeout() from None
+                if remaining <= 0:
+                    raise _WorkerTimeout() from None
+                if exited_at is None:
+                    if self.proc.returncode is not None or _leader_exited(self.proc.pid):
+                        exited_at = time.monotonic()
+                elif time.monotonic() - exited_at > EXIT_DRAIN_S:
+                    raise self._died() from None
+                continue
             if line is None:
                 raise self._died()
+            if isinstance(line, _TooLong):
+                raise ProtocolError(
+                    f"answer line longer than {max_line:,} bytes, the cap for this request "
+                    f"(starts {str(line)!r})")
             if not line.endswith("\n"):
                 # A last line without its newline: the worker died while
                 # writing (or closed stdout); that is a crash, not an answer.
@@ -212,8 +314,9 @@ class _Worker:
                 return decode(line)
 
     def _terminate_group(self) -> None:
-        # Only while the leader is not yet reaped is its pid (= the group id,
-        # start_new_session) guaranteed to still be ours.
+        # The group is killed even when the twin itself has exited (a child of it may
+        # live on, holding its pipes), but only while the twin is not yet reaped: until
+        # then its pid, the group id, cannot be reused by an unrelated process.
         if self.proc.returncode is None:
             try:
                 os.killpg(self.proc.pid, signal.SIGKILL)
@@ -227,7 +330,7 @@ class _Worker:
         self._close()
 
     def close(self) -> None:
-        """Ask the worker to shut down; kill it if it does not exit in time."""
+        """Ask the worker to shut down; kill its group once it exits or its time is up."""
         if self.proc.returncode is None:
             try:
                 self.ask({"op": "shutdown"}, SHUTDOWN_GRACE_S)
@@ -238,13 +341,16 @@ class _Worker:
                 self.proc.stdin.close()
             except (OSError, ValueError):
                 pass
-            try:
-                self.proc.wait(timeout=SHUTDOWN_GRACE_S)
-            except subprocess.TimeoutExpired:
-                pass
+            deadline = time.monotonic() + SHUTDOWN_GRACE_S
+            while (self.proc.returncode is None and not _leader_exited(self.proc.pid)
+                   and time.monotonic() < deadline):
+                time.sleep(0.02)
         self.kill()
 
     def _close(self) -> None:
+        # The reader threads wake every PIPE_POLL_S and stop when told: the pipes can then
+        # be closed without waiting for a writer that never closes its end.
+        self._stop.set()
         for th in self._threads:
             th.join(timeout=2.0)
         for pipe in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
@@ -577,6 +683,8 @@ class _Pool:
                 {"op": "simulate_batch",
                  "requests": [self._request(int(i), r) for i, r in zip(idx, ids, strict=True)]},
                 self.timeout_s * len(idx),
+                max(MAX_LINE_BYTES,
+                    MAX_LINE_BYTES_PER_RUN_HOUR * int(self.hours[idx].sum())),
             )
             results = check_results(answer, len(idx))
         except (_WorkerTimeout, _WorkerDied, ProtocolError) as exc:
