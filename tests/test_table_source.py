@@ -237,3 +237,19 @@ def test_workflow_stops_at_a_broken_table_in_one_line_before_any_other_rule(tmp_
     outputs = [p for p in (tmp_path / "results" / "test").rglob("*")
                if p.is_file() and "logs" not in p.parts]
     assert outputs == [], outputs
+
+
+def test_the_table_check_screens_units(tmp_path):
+    from twinfalsify.sources.synthetic import generate
+    from twinfalsify.sources.table import main, to_table, unit_suspects, write_table
+
+    traj = generate({"n_stays": 60}, seed=5)
+    assert unit_suspects(traj) == []
+    table = to_table(traj)
+    table["Glucose"] = table["Glucose"] / 18.016  # mmol/L, labelled mg/dL by the contract
+    path = tmp_path / "mmol.csv"
+    write_table(table, path)
+    assert main(["check", str(path)]) == 1
+    (message,) = unit_suspects(traj.assign(Glucose=traj["Glucose"] / 18.016))
+    assert message.startswith("Glucose: data median 7.")
+    assert message.endswith(", typical 60-350 mg/dL: mmol/L?")

@@ -26,6 +26,7 @@ RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size
 # (docs/how-to/run-workflow.md, "What reruns after which change").
 EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_runs",
                   "max_restarts")
+COMMAND_TIMEOUT_S = 600.0  # per run, for a kind command twin whose spec gives no timeout_s
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
@@ -162,7 +163,7 @@ def make_twin(
             command = shlex.split(command)
         if not command:
             raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
-        opts = _runner_options(spec, 600.0)
+        opts = _runner_options(spec, COMMAND_TIMEOUT_S)
         if command[0] in ("python", "python3"):
             # "python" = the study's own interpreter, with this library importable, whatever
             # PATH says (a twin needing another interpreter, e.g. Pulse's, names its path).

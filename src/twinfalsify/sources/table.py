@@ -314,6 +314,16 @@ def read_table(path: str | Path, t_max: int = T_MAX) -> pd.DataFrame:
     return validate_table(read_rows(path), t_max)
 
 
+def unit_suspects(trajectories: pd.DataFrame) -> list[str]:
+    """One message per feature whose median (all rows) lies outside the range an ICU
+    cohort's median typically falls in, naming the unit that would explain it (values
+    inside the contract's wide ranges can still be in the wrong unit: glucose in mmol/L)."""
+    from twinfalsify.unitscreen import against_typical
+
+    medians = trajectories[list(FEATURES)].median()
+    return [m for f in FEATURES for m in [against_typical(f, float(medians[f]))] if m]
+
+
 def to_table(trajectories: pd.DataFrame, subject_id: pd.Series | None = None) -> pd.DataFrame:
     """Trajectories (contract frame) as a table: ``subject_id`` added after ``stay_id``
     (default: one patient per stay, subject_id = stay_id)."""
@@ -352,6 +362,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.cmd == "check":
         traj = read_table(args.path)
+        suspects = unit_suspects(traj)
+        for message in suspects:
+            print(f"{args.path}: unit? {message}")
+        if suspects:
+            print(f"{args.path}: the rows follow the contract, but {len(suspects)} "
+                  f"feature(s) look like another unit than the contract's (above)")
+            return 1
         print(f"{args.path}: ok, {traj[STAY_ID].nunique()} stays, {len(traj)} rows")
         return 0
     from twinfalsify.sources.synthetic import generate
