@@ -626,7 +626,8 @@ class Checker:
                                              ref_name=ref_name)] if m]
         self.add("units", not found, found[0] + (f" (and {len(found) - 1} more: "
                  + "; ".join(found[1:]) + ")" if len(found) > 1 else "") if found else
-                 f"every feature's hour-1 median within a factor 2 of {ref_name}'s "
+                 f"every feature's hour-1 median within a factor 2 of "
+                 f"{'the data' if ref_name == 'data' else ref_name}'s "
                  f"({len(ok)} ok runs)")
 
     def check_shutdown(self) -> None:
