@@ -342,6 +342,49 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["feature", "x0_clamped", "share"])
 
 
+CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)
+
+
+def clipped_shares(hyps: pd.DataFrame, samples: HypothesisSamples) -> pd.DataFrame:
+    """Per outcome: the share of the twin's outputs (every run entering a hypothesis) at or
+    beyond y_lo and at or beyond y_up, beside the data's followers' shares.
+
+    The tests clip outcomes to [y_lo, y_up] (the 0.2 / 0.8 quantiles of the D0 subset, so
+    about a fifth of the data sits at each bound): a twin in the wrong unit piles up at one
+    bound, where a test may not reject it, and this table shows it.
+    """
+    rows = []
+    outcome = hyps["outcome"].to_numpy()
+    for part, ragged in (("twin", samples.twin), ("data", samples.follow)):
+        gid = ragged.group_ids()
+        lo = ragged.values <= samples.y_lo[gid]
+        up = ragged.values >= samples.y_up[gid]
+        frame = pd.DataFrame({"outcome": outcome[gid], "lo": lo, "up": up})
+        g = frame.groupby("outcome")
+        rows.append(pd.DataFrame({f"{part}_outputs": g.size(),
+                                  f"{part}_at_y_lo": g["lo"].mean(),
+                                  f"{part}_at_y_up": g["up"].mean()}))
+    out = pd.concat(rows, axis=1).reset_index().rename(columns={"index": "outcome"})
+    counts = ["twin_outputs", "data_outputs"]
+    out[counts] = out[counts].fillna(0).astype("int64")
+    return out[["outcome", "twin_outputs", "twin_at_y_lo", "twin_at_y_up", "data_outputs",
+                "data_at_y_lo", "data_at_y_up"]]
+
+
+def clipped_warnings(clipped: pd.DataFrame) -> list[str]:
+    """One line per twin and outcome whose outputs sit at one bound more than CLIPPED_WARN
+    of the time (a unit or scale error the tests may not be able to reject)."""
+    out = []
+    for r in clipped.itertuples():
+        for side in ("lo", "up"):
+            share = getattr(r, f"twin_at_y_{side}")
+            if share > CLIPPED_WARN:
+                out.append(f"twin {r.twin}: {share:.0%} of its {r.outcome} outputs are at or "
+                           f"beyond y_{side} (data: {getattr(r, f'data_at_y_{side}'):.0%}): "
+                           "a unit or scale error? The tests see only the clipped values")
+    return out
+
+
 def _md(df: pd.DataFrame) -> str:
     return markdown_table(df, ".3g")
 
@@ -367,7 +410,7 @@ def study_summary(
     })  # fmt: skip
     hyp = hyps.groupby("kind").agg(parameter_sets=("hyp_id", "size")).reset_index()
     hyp["hypotheses"] = 2 * hyp["parameter_sets"]
-    runs_rows, clamp_rows, rej_rows, unt_rows = [], [], [], []
+    runs_rows, clamp_rows, rej_rows, unt_rows, clip_rows = [], [], [], [], []
     for name, parts in twins.items():
         runs, res = parts["runs"], parts["results"]
         counts = runs.groupby(["t", "status"]).size().rename("rows").reset_index()
@@ -386,6 +429,10 @@ def study_summary(
         u = unt.groupby("kind")[["untestable", "n_zero", "nhat_zero"]].sum().reset_index()
         u.insert(0, "twin", name)
         unt_rows.append(u)
+        if parts.get("clipped") is not None:
+            cp = parts["clipped"].copy()
+            cp.insert(0, "twin", name)
+            clip_rows.append(cp)
 
     def cat(frames, cols):
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=cols)
@@ -397,6 +444,9 @@ def study_summary(
         "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
         "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
+        "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
+                                   "twin_at_y_up", "data_outputs", "data_at_y_lo",
+                                   "data_at_y_up"]),
     }
 
 
@@ -407,12 +457,24 @@ _TITLES = {
     "clamps": "Share of twin initial states clamped, per feature",
     "rejections": "Rejections per twin, method and kind (after correction)",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
+    "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
+               "y_up, per twin and outcome",
 }
+
+
+def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+    clipped = tables.get("clipped")
+    return clipped_warnings(clipped) if clipped is not None and len(clipped) else []
 
 
 def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
     out = [f"# Study `{study}`: summary", ""]
+    warnings = _warnings(tables)
+    if warnings:
+        out += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
     for key, title in _TITLES.items():
+        if key not in tables:
+            continue
         df = tables[key]
         out += [f"## {title}", "", _md(df) if len(df) else "_none_", ""]
     return "\n".join(out)
@@ -427,7 +489,13 @@ def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
         f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
     ]
+    warnings = _warnings(tables)
+    if warnings:
+        out.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings)
+                   + "</ul>")
     for key, title in _TITLES.items():
+        if key not in tables:
+            continue
         df = tables[key]
         body = (
             df.to_html(index=False, float_format=lambda v: f"{v:.3g}") if len(df) else "<p>none</p>"
