@@ -342,6 +342,21 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["feature", "x0_clamped", "share"])
 
 
+def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None) -> np.ndarray:
+    """Per results row: the method could not test the hypothesis (p = 1 by rule, not by
+    evidence): n = 0 or nhat = 0 for every method; for the bootstrap also n or nhat below
+    its ``min_n`` (default 100)."""
+    out = (results["n"].to_numpy() == 0) | (results["nhat"].to_numpy() == 0)
+    for name, opts in (methods or {}).items():
+        if name != "bootstrap":
+            continue
+        min_n = max(int((opts or {}).get("min_n", 100)), 1)
+        mine = results["method"].to_numpy() == name
+        small = (results["n"].to_numpy() < min_n) | (results["nhat"].to_numpy() < min_n)
+        out |= mine & small
+    return out
+
+
 CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)
 
 
@@ -396,8 +411,11 @@ def study_summary(
     hyps: pd.DataFrame,
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
+    methods: Mapping[str, Mapping] | None = None,
 ) -> dict[str, pd.DataFrame]:
-    """Tables of the study summary. twins: name -> {"runs": ..., "results": ...}.
+    """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
+    optionally "clipped": clipped_shares(...)}; methods: ``testing.methods`` (which
+    hypotheses each method refuses, see ``refused``).
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
     clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
@@ -419,8 +437,10 @@ def study_summary(
         cl = clamp_shares(runs)
         cl.insert(0, "twin", name)
         clamp_rows.append(cl)
-        g = res.groupby(["method", "kind"])
-        rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum()}).reset_index()
+        g = res.assign(untestable=refused(res, methods)).groupby(["method", "kind"])
+        rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum(),
+                            "untestable": g["untestable"].sum()}).reset_index()
+        rej["tested"] = rej["hypotheses"] - rej["untestable"]
         rej.insert(0, "twin", name)
         rej_rows.append(rej)
         first = res.drop_duplicates("hyp_id")
@@ -442,7 +462,8 @@ def study_summary(
         "hypotheses": hyp,
         "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
         "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
-        "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected"]),
+        "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected",
+                                     "untestable", "tested"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
         "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
                                    "twin_at_y_up", "data_outputs", "data_at_y_lo",
@@ -455,7 +476,9 @@ _TITLES = {
     "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
     "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
     "clamps": "Share of twin initial states clamped, per feature",
-    "rejections": "Rejections per twin, method and kind (after correction)",
+    "rejections": "Rejections per twin, method and kind (after correction); untestable: "
+                  "hypotheses the method refused (p = 1 by rule: n or nhat = 0, or below "
+                  "the bootstrap's min_n), so tested = hypotheses - untestable",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
     "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
                "y_up, per twin and outcome",

@@ -317,6 +317,7 @@ rule summary:
     params:
         study=STUDY,
         twins=TWINS,
+        testing=canon(config["testing"]),
         code=code("summary"),
     script:
         "../../scripts/summary.py"
