@@ -164,6 +164,8 @@ def served_modules(twin):
     spec = config["twins"][twin]
     if spec.get("protocol") and spec["kind"] != "command":
         return ["twinfalsify.runs.serve"]
+    if spec["kind"] == "python" and int(spec.get("workers", 1)) > 1:
+        return ["twinfalsify.runs.serve"]
     command = spec.get("command") or []
     words = command.split() if isinstance(command, str) else command
     return [w for w in words if w.startswith("twinfalsify.")]
@@ -179,6 +181,10 @@ def shard_code(twin, script="twin_shard"):
     so editing them reruns exactly its shards and what follows (twinfalsify.runs.command).
     """
     fingerprint = code(script, served_modules(twin))
+    if config["twins"][twin]["kind"] == "python":  # the factory module's source
+        from twinfalsify.runs.registry import python_fingerprint
+
+        return f"{fingerprint}+{python_fingerprint(config['twins'][twin], twin)}"
     if config["twins"][twin]["kind"] != "command":
         return fingerprint
     if twin not in _COMMAND_CODE:  # once per parse, not once per shard job

@@ -746,15 +746,19 @@ def _x0_of(trajectories: Any, n: int = 4) -> list[dict[str, float]]:
 
 
 def command_of(spec: dict[str, Any], name: str = "twin") -> tuple[list[str], dict | None, float]:
-    """(command, env, timeout_s) of a ``kind: command`` twin spec, as a study starts it."""
+    """(command, env, timeout_s) of a ``kind: command`` twin spec, as a study starts it; a
+    ``kind: python`` twin is checked served over the protocol, as a study with
+    ``workers`` > 1 runs it (its timeout_s default is then the served twins' 60 s)."""
     from twinfalsify.runs.registry import make_twin
 
-    if spec.get("kind") != "command":
-        raise ContractError(f"twins.{name}: the check runs twins of kind command (this one is "
-                            f"kind {spec.get('kind')!r}); the builtin twins conform by "
-                            "construction")
+    if spec.get("kind") not in ("command", "python"):
+        raise ContractError(f"twins.{name}: the check runs twins of kind command or python "
+                            f"(this one is kind {spec.get('kind')!r}); the builtin twins "
+                            "conform by construction")
+    if spec.get("kind") == "python":
+        spec = {**spec, "protocol": True}
     twin = make_twin(name, spec)
-    timeout = float(spec["timeout_s"]) if "timeout_s" in spec else DEFAULT_TIMEOUT_S
+    timeout = float(twin.timeout_s)
     env = None
     if twin.env:
         import os
