@@ -149,6 +149,7 @@ SECONDS_PER_TWIN_HOUR = {
     "biased": 0.01,
     "fitted": 0.01,
     "command": 150.0,
+    "python": 150.0,  # unknown cost, as a command twin: a generous Slurm budget
 }
 
 
@@ -207,7 +208,7 @@ def shard_mem_mb(wildcards, threads):
     """Builtin twins hold the shard's node table in memory; a twin served over the protocol
     runs one process per worker (Pulse: ~110 MB per engine, plus headroom)."""
     spec = twin_spec(wildcards)
-    if spec["kind"] == "command" or spec.get("protocol"):
+    if spec["kind"] in ("command", "python") or spec.get("protocol"):
         return 1000 + 250 * threads
     return 4000
 
@@ -218,7 +219,8 @@ def shard_runtime(wildcards, input, threads):
     protocol/command twin by its timeout_s (the runner kills a run at that limit); summed,
     over the workers, doubled for safety, at least 10 minutes."""
     spec = twin_spec(wildcards)
-    served = spec["kind"] == "command" or spec.get("protocol")
+    served = (spec["kind"] == "command" or spec.get("protocol")
+              or (spec["kind"] == "python" and int(spec.get("workers", 1)) > 1))
     return shard_runtime_minutes(
         json.loads(Path(input.plan).read_text()),
         int(wildcards.shard),
