@@ -357,6 +357,22 @@ def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None)
     return out
 
 
+FAILING_WARN = 0.5  # a twin failing every run of more than this share of X_0 is warned about
+
+
+def failing_patients(runs: pd.DataFrame, twin: str) -> str:
+    """'' or a warning when more than FAILING_WARN of the X_0 got no ok run at all (a twin
+    that refuses most patients tests little, however clean its exit)."""
+    ok = runs["status"].eq("ok").groupby(runs["init_stay_id"]).any()
+    failed = int((~ok).sum())
+    if not len(ok) or failed / len(ok) <= FAILING_WARN:
+        return ""
+    top = runs.loc[runs["status"] != "ok", "status"].value_counts()
+    what = ", ".join(f"{k} {v}" for k, v in top.head(3).items())
+    return (f"twin {twin}: {failed} of {len(ok)} patients ({failed / len(ok):.0%}) got no ok "
+            f"run (failed runs: {what}); its tests see the failures only as worst cases")
+
+
 CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)
 
 
@@ -429,6 +445,7 @@ def study_summary(
     hyp = hyps.groupby("kind").agg(parameter_sets=("hyp_id", "size")).reset_index()
     hyp["hypotheses"] = 2 * hyp["parameter_sets"]
     runs_rows, clamp_rows, rej_rows, unt_rows, clip_rows = [], [], [], [], []
+    failing: list[str] = []
     for name, parts in twins.items():
         runs, res = parts["runs"], parts["results"]
         counts = runs.groupby(["t", "status"]).size().rename("rows").reset_index()
@@ -449,6 +466,8 @@ def study_summary(
         u = unt.groupby("kind")[["untestable", "n_zero", "nhat_zero"]].sum().reset_index()
         u.insert(0, "twin", name)
         unt_rows.append(u)
+        if "init_stay_id" in runs and failing_patients(runs, name):
+            failing.append(failing_patients(runs, name))
         if parts.get("clipped") is not None:
             cp = parts["clipped"].copy()
             cp.insert(0, "twin", name)
@@ -465,6 +484,7 @@ def study_summary(
         "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected",
                                      "untestable", "tested"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
+        "failing": pd.DataFrame({"warning": failing}, dtype=object),
         "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
                                    "twin_at_y_up", "data_outputs", "data_at_y_lo",
                                    "data_at_y_up"]),
@@ -487,7 +507,9 @@ _TITLES = {
 
 def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
     clipped = tables.get("clipped")
-    return clipped_warnings(clipped) if clipped is not None and len(clipped) else []
+    failing = tables.get("failing")
+    return ([*failing["warning"]] if failing is not None else []) + (
+        clipped_warnings(clipped) if clipped is not None and len(clipped) else [])
 
 
 def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
