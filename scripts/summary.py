@@ -6,23 +6,33 @@ from pathlib import Path
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify.io import read_parquet, run_rule, write_text  # noqa: E402
-from twinfalsify.summary import study_summary, summary_html, summary_markdown  # noqa: E402
+from twinfalsify.summary import (  # noqa: E402
+    clipped_shares,
+    load_study_twin,
+    study_summary,
+    summary_html,
+    summary_markdown,
+)
+
+SHARED = ("d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan")
 
 
 def main(sm):
-    twins = {
-        name: {
-            "runs": read_parquet(runs, "twin runs"),
-            "results": read_parquet(res, "results"),
-        }
-        for name, runs, res in zip(sm.params.twins, sm.input.runs, sm.input.results, strict=True)
-    }
+    twins = {}
+    for name, runs, res in zip(sm.params.twins, sm.input.runs, sm.input.results, strict=True):
+        # the samples the tests saw, to show how many twin outputs sit at the bounds
+        st = load_study_twin({**{k: getattr(sm.input, k) for k in SHARED}, "runs": runs,
+                              "results": res})
+        twins[name] = {"runs": read_parquet(runs, "twin runs"),
+                       "results": read_parquet(res, "results"),
+                       "clipped": clipped_shares(st.hyps, st.samples)}
     tables = study_summary(
         sm.params.study,
         read_parquet(sm.input.d0, "D0"),
         read_parquet(sm.input.d, "D"),
         read_parquet(sm.input.hypotheses, "hypotheses"),
         twins,
+        methods=(sm.params.testing or {}).get("methods"),
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)

@@ -10,6 +10,7 @@ import pandas as pd  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, status_summary, twin_hellos  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
+from twinfalsify.summary import failing_patients  # noqa: E402
 
 
 def main(sm):
@@ -32,6 +33,11 @@ def main(sm):
         "twin_hours": plan.hours(),
         **hellos,
     }
+    warning = failing_patients(runs, sm.wildcards.twin)
+    if warning:  # on stderr too: the study's own output, not only its log
+        summary["warnings"] = [warning]
+        log.warning("%s", warning)
+        print(f"WARNING: {warning}", file=sys.stderr, flush=True)
     log.info("%s", summary)
     write_parquet(runs, sm.output.runs)
     write_json(summary, sm.output.summary)

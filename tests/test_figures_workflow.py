@@ -84,6 +84,8 @@ def test_tables_match_the_results_they_summarise(study):
               for m in re.findall(r"\((\d+)\)$", cell)]  # fmt: skip
     assert sorted(counts) == sorted(space["n_hours"].tolist())
     md = (r / "summary.md").read_text()
+    # every twin's outputs at the bounds, per outcome
+    assert "## Outputs at the bounds" in md and "twin_at_y_lo" in md
     for twin in cfg["twins"]:
         res = pd.read_parquet(r / "twins" / twin / "results.parquet")
         for (method, kind), part in res.groupby(["method", "kind"]):

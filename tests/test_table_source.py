@@ -237,3 +237,42 @@ def test_workflow_stops_at_a_broken_table_in_one_line_before_any_other_rule(tmp_
     outputs = [p for p in (tmp_path / "results" / "test").rglob("*")
                if p.is_file() and "logs" not in p.parts]
     assert outputs == [], outputs
+
+
+def test_the_table_check_screens_units(tmp_path):
+    from twinfalsify.sources.synthetic import generate
+    from twinfalsify.sources.table import main, to_table, unit_suspects, write_table
+
+    traj = generate({"n_stays": 60}, seed=5)
+    assert unit_suspects(traj) == []
+    table = to_table(traj)
+    table["Glucose"] = table["Glucose"] / 18.016  # mmol/L, labelled mg/dL by the contract
+    path = tmp_path / "mmol.csv"
+    write_table(table, path)
+    assert main(["check", str(path)]) == 1
+    (message,) = unit_suspects(traj.assign(Glucose=traj["Glucose"] / 18.016))
+    assert message.startswith("Glucose: data median 7.")
+    assert message.endswith(", typical 60-350 mg/dL: mmol/L?")
+
+
+def test_table_messages_show_what_the_file_holds(tmp_path):
+    from twinfalsify.sources.synthetic import generate
+    from twinfalsify.sources.table import read_table, to_table, write_table
+
+    table = to_table(generate({"n_stays": 3}, seed=1))
+    half = table.astype({"stay_id": float})
+    half.loc[0, "stay_id"] = 201204.5
+    half.to_csv(tmp_path / "half.csv", index=False)
+    with pytest.raises(ContractError, match=r"column stay_id: 201204\.5 is not an integer"):
+        read_table(tmp_path / "half.csv")
+    table.head(0).to_csv(tmp_path / "header.csv", index=False)
+    with pytest.raises(ContractError) as err:
+        read_table(tmp_path / "header.csv")
+    assert str(err.value) == f"{tmp_path / 'header.csv'}: a header and no rows (rule: at " \
+                             "least one stay)"
+    table.to_csv(tmp_path / "semi.csv", index=False, sep=";")
+    with pytest.raises(ContractError, match="the file is separated by ';', the table "
+                                            "contract's CSV by ','"):
+        read_table(tmp_path / "semi.csv")
+    write_table(table, tmp_path / "good.csv")
+    assert len(read_table(tmp_path / "good.csv")) == len(table)

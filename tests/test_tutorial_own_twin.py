@@ -61,16 +61,33 @@ def test_tutorial_commands_run_as_written(tmp_path):
     assert "ok, 1000 stays, 5000 rows" in outputs[0]
     check = next(o for c, o in zip(commands(PAGE.read_text()), outputs, strict=True)
                  if "twinfalsify.runs.check" in c)
-    assert "all checks passed" in check and "FAIL" not in check
+    assert "all checks passed" in check and "FAIL" not in check and "WARN" not in check
+    # every row the page shows is what the check prints (the times are the machine's)
+    page = PAGE.read_text()
+    shown = re.search(r"^```text\n(hello .*?)^```", page, flags=re.M | re.S).group(1)
+    def untimed(line: str) -> str:
+        return re.sub(r"\d[\d.e-]* s\b", "_ s", line.rstrip())
+    assert [untimed(ln) for ln in shown.splitlines()] == \
+        [untimed(ln) for ln in check.splitlines()[1:-1]]
     r = work / "results" / "table-example"
     assert (r / "report.html").stat().st_size > 10_000
     for twin in ("mine", "fitted"):
         assert (r / "twins" / twin / "tables" / "rejections.csv").is_file()
+    import pandas as pd
+
+    # step 6: the template is not rejected; the fitted twin once, as the page says
+    assert "1,000 stays" in page and "200 of the 1,000 stays" in \
+        (work / "config" / "table-example.yaml").read_text()
+    mine = pd.read_parquet(r / "twins" / "mine" / "results.parquet")
+    assert not mine["rejected"].any()
+    fitted = pd.read_parquet(r / "twins" / "fitted" / "results.parquet")
+    (hit,) = fitted[fitted["rejected"]].itertuples()
+    assert (hit.method, hit.kind, hit.outcome, hit.t) == ("betting", "causal", "paCO2", 1)
+    assert f"{hit.p_value:.1e}" == "1.7e-04"
+    assert "betting, causal, paCO2 at hour 1,\np = 1.7e-4" in page
     assert not (r / "figures" / "confounding.png").exists()  # the synthetic world only
     # the deliberately wrong twin (heart rate +15 /min per hour) passes the conformance check
     # but is rejected, and only on heart rate
-    import pandas as pd
-
     wrong = pd.read_parquet(work / "results" / "table-wrong" / "twins" / "mine" /
                             "results.parquet")
     rejected = wrong[wrong["rejected"]]

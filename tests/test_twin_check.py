@@ -18,8 +18,20 @@ from pathlib import Path
 import pytest
 from fakes import FAULTY_TWIN
 
-from twinfalsify.runs.check import FIXES, Outcome, report, run_checks, shipped_x0
+from twinfalsify.runs.check import (
+    DEFAULT_TIMEOUT_S,
+    FIXES,
+    HINT_EXIT,
+    HINT_UNFLUSHED,
+    Outcome,
+    data_reference,
+    report,
+    run_checks,
+    shipped_x0,
+)
+from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURE_TABLE
+from twinfalsify.sources.synthetic import generate
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
@@ -61,7 +73,8 @@ FAULTS: dict[str, tuple[list[str], dict[str, str]]] = {
     "batch_differs": (["--batch", "4", "--mode", "batch_differs"], {"batch": "run 0: hour 1 HR"}),
     "stale_restore": (["--save-restore", "--mode", "stale_restore"],
                       {"save/restore": "sharing 2 hours with the previous run vs the same run "
-                                       "alone: hour 3"}),
+                                       "alone: hour 3",
+                       "X_0": "the same trajectory from 2 X_0"}),
     "early_truncate": (["--truncate", "--mode", "early_truncate"],
                        {"truncation": "truncated after hour 1, but a continue_while path "
                                       "still holds"}),
@@ -71,11 +84,30 @@ FAULTS: dict[str, tuple[list[str], dict[str, str]]] = {
     "bad_protocol": (["--mode", "bad_protocol"], {"hello": "twin speaks protocol 2"}),
     "no_hello": (["--mode", "no_hello"], {"starts": "exited before answering hello"}),
     "max_hours": (["--max-hours", "2"], {"hello": "max_hours 2 < T = 4"}),
+    "unflushed": (["--mode", "unflushed"], {"hello": "no hello answer within 4 s; the hello "
+                                            "answer came only when stdin was closed: stdout "
+                                            "is not flushed"}),
+    # wrong twins that speak the protocol perfectly: the behaviour rows name them
+    "shifted": (["--mode", "shifted"], {"hour 1": "hour 1 equals X_0 in all 6 ok runs "
+                                        "(every physiological feature): hours shifted"}),
+    "glucose_mmol": (["--mode", "glucose_mmol"], {"units": "Glucose: twin median 8.2, X_0 "
+                                                  "148 mg/dL: mmol/L?"}),
+    "x0_ignored": (["--mode", "x0_ignored"], {"X_0": "the same trajectory from 2 X_0 that "
+                                              "differ in 17 features"}),
+    "dose2_ignored": (["--mode", "dose2_ignored"], {}),
+}
+# cases that pass with a warning -> {check: fragment of its detail}
+WARNINGS: dict[str, dict[str, str]] = {
+    "dose2_ignored": {"doses": "the action at hour 2 changes nothing"},
+    # the answer's last hour is the good hour 3: the hour-4 dose is lost
+    "shifted": {"doses": "the action at hour 4 changes nothing"},
+    # the cache ignores doses (and X_0) by design of the fault
+    "stale_restore": {"doses": "the actions at hours 1, 2, 3, 4 change nothing"},
 }
 
 
 def _check(args: list[str]) -> list[Outcome]:
-    return run_checks([*FAULTY_TWIN, *args], ENV, timeout_s=2.0, x0s=X0)
+    return run_checks([*FAULTY_TWIN, *args], ENV, timeout_s=2.0, x0s=X0, startup_timeout_s=4.0)
 
 
 def test_every_fault_mode_of_the_faulty_twin_has_a_case():
@@ -97,9 +129,21 @@ def test_the_check_names_the_fault(case):
     assert set(failed) == set(expect), report(outcomes)
     for name, fragment in expect.items():
         assert fragment in failed[name].detail, report(outcomes)
-        assert failed[name].fix == FIXES[name]
+        # a twin that exits mid-run is pointed at its stderr, not at the protocol rules
+        want = {("crash", "protocol"): HINT_EXIT, ("unflushed", "hello"): HINT_UNFLUSHED}.get(
+            (case, name), FIXES[name])
+        assert failed[name].fix == want
+    warned = {o.name: o for o in outcomes if o.warn}
+    assert set(warned) == set(WARNINGS.get(case, {})), report(outcomes)
+    for name, fragment in WARNINGS.get(case, {}).items():
+        assert fragment in warned[name].detail, report(outcomes)
+        assert warned[name].fix == FIXES[name]
     names = dict.fromkeys(o.name for o in outcomes if o.ok is False)
-    assert report(outcomes).endswith(f"{len(failed)} check(s) failed: {', '.join(names)}")
+    verdict = report(outcomes).splitlines()[-1]
+    assert verdict.startswith(f"{len(failed)} check(s) failed: {', '.join(names)}"
+                              if failed else "all checks passed"), verdict
+    assert verdict.endswith(f"({len(warned)} warning(s): {', '.join(warned)})"
+                            if warned else verdict)
 
 
 @pytest.mark.slow
@@ -107,10 +151,10 @@ def test_the_check_names_the_fault(case):
                                   ["--mode", "clamp"]])
 def test_a_conforming_twin_passes_every_check(caps):
     outcomes = _check(caps)
-    assert not [o for o in outcomes if o.ok is False], report(outcomes)
+    assert not [o for o in outcomes if o.ok is False or o.warn], report(outcomes)
     passed = {o.name for o in outcomes if o.ok}
     assert {"hello", "protocol", "one answer", "simulates", "ranges", "time", "deterministic",
-            "prefix", "shutdown"} <= passed
+            "prefix", "shutdown", "hour 1", "X_0", "doses", "units"} <= passed
     optional = {"--batch": "batch", "--save-restore": "save/restore", "--truncate": "truncation"}
     for flag, name in optional.items():
         assert (name in passed) == (flag in caps), report(outcomes)
@@ -147,7 +191,8 @@ def test_command_line_exit_codes_and_table(tmp_path):
     assert wrong.stderr.strip() == (f"twinfalsify.runs.check: error: {config}: no twin 'yours' "
                                     "under twins (found mine)")
     builtin = cli("--spec", '{"kind": "oracle"}')
-    assert builtin.returncode == 2 and "the check runs twins of kind command" in builtin.stderr
+    assert builtin.returncode == 2
+    assert "the check runs twins of kind command or python" in builtin.stderr
 
 
 def test_the_template_twin_of_the_tutorial_passes_every_check():
@@ -155,3 +200,25 @@ def test_the_template_twin_of_the_tutorial_passes_every_check():
                           ENV, timeout_s=30.0, x0s=X0)
     assert not [o for o in outcomes if o.ok is False], report(outcomes)
     assert {o.name for o in outcomes if o.ok is None} == {"batch", "save/restore", "truncation"}
+
+
+def test_the_default_timeout_is_the_studys():
+    # a twin the check passes must not be timed out by a study of the same spec
+    twin = make_twin("mine", {"kind": "command", "command": ["python", "x.py"]})
+    assert DEFAULT_TIMEOUT_S == twin.timeout_s == 600.0
+
+
+@pytest.mark.slow
+def test_units_are_screened_against_the_data_when_given():
+    data = generate({"n_stays": 200}, seed=3)
+    reference = data_reference(data)
+    assert 100 < reference["Glucose"] < 170  # mg/dL, the data's own hour 1
+    outcomes = run_checks([*FAULTY_TWIN, "--mode", "glucose_mmol"], ENV, timeout_s=2.0,
+                          x0s=X0, reference=reference, startup_timeout_s=4.0)
+    units = next(o for o in outcomes if o.name == "units")
+    assert units.ok is False
+    assert units.detail.startswith("Glucose: twin median 8.2, data ")
+    assert units.detail.endswith(" mg/dL: mmol/L?")
+    good = run_checks(FAULTY_TWIN, ENV, timeout_s=2.0, x0s=X0, reference=reference,
+                      startup_timeout_s=4.0)
+    assert next(o for o in good if o.name == "units").ok, report(good)

@@ -154,11 +154,17 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     f = frame.sort_values("t")
     t = f["t"].to_numpy(float)
     fig, ax = plt.subplots(figsize=(8.4, 4.2))
-    ax.fill_between(t, f["q_lo_hat"] - f["r_bound"], f["q_up_hat"] + f["r_bound"],
+    # a band over one hour has no width: draw it as a box around that hour instead
+    bx = np.array([t[0] - 0.3, t[0] + 0.3]) if len(t) == 1 else t
+
+    def band(v: pd.Series) -> np.ndarray:
+        return np.repeat(v.to_numpy(float), 2) if len(t) == 1 else v.to_numpy(float)
+
+    ax.fill_between(bx, band(f["q_lo_hat"] - f["r_bound"]), band(f["q_up_hat"] + f["r_bound"]),
                     color=COLORS["bound"], alpha=0.12, lw=0,
                     label="bounds with Hoeffding intervals")  # fmt: skip
-    ax.fill_between(t, f["q_lo_hat"], f["q_up_hat"], color=COLORS["bound"], alpha=0.3, lw=0,
-                    label=r"$[\hat Q_{lo}, \hat Q_{up}]$")  # fmt: skip
+    ax.fill_between(bx, band(f["q_lo_hat"]), band(f["q_up_hat"]), color=COLORS["bound"],
+                    alpha=0.3, lw=0, label=r"$[\hat Q_{lo}, \hat Q_{up}]$")  # fmt: skip
     ax.errorbar(t - 0.06, f["q_twin_hat"], yerr=f["r_twin"], fmt="o-", color=COLORS["twin"],
                 capsize=3, label=r"twin $\hat Q_{twin}$")  # fmt: skip
     ax.errorbar(t + 0.06, f["q_obs_hat"], yerr=f["r_obs"], fmt="s--", color=COLORS["naive"],

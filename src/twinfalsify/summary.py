@@ -342,6 +342,80 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["feature", "x0_clamped", "share"])
 
 
+def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None) -> np.ndarray:
+    """Per results row: the method could not test the hypothesis (p = 1 by rule, not by
+    evidence): n = 0 or nhat = 0 for every method; for the bootstrap also n or nhat below
+    its ``min_n`` (default 100)."""
+    out = (results["n"].to_numpy() == 0) | (results["nhat"].to_numpy() == 0)
+    for name, opts in (methods or {}).items():
+        if name != "bootstrap":
+            continue
+        min_n = max(int((opts or {}).get("min_n", 100)), 1)
+        mine = results["method"].to_numpy() == name
+        small = (results["n"].to_numpy() < min_n) | (results["nhat"].to_numpy() < min_n)
+        out |= mine & small
+    return out
+
+
+FAILING_WARN = 0.5  # a twin failing every run of more than this share of X_0 is warned about
+
+
+def failing_patients(runs: pd.DataFrame, twin: str) -> str:
+    """'' or a warning when more than FAILING_WARN of the X_0 got no ok run at all (a twin
+    that refuses most patients tests little, however clean its exit)."""
+    ok = runs["status"].eq("ok").groupby(runs["init_stay_id"]).any()
+    failed = int((~ok).sum())
+    if not len(ok) or failed / len(ok) <= FAILING_WARN:
+        return ""
+    top = runs.loc[runs["status"] != "ok", "status"].value_counts()
+    what = ", ".join(f"{k} {v}" for k, v in top.head(3).items())
+    return (f"twin {twin}: {failed} of {len(ok)} patients ({failed / len(ok):.0%}) got no ok "
+            f"run (failed runs: {what}); its tests see the failures only as worst cases")
+
+
+CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)
+
+
+def clipped_shares(hyps: pd.DataFrame, samples: HypothesisSamples) -> pd.DataFrame:
+    """Per outcome: the share of the twin's outputs (every run entering a hypothesis) at or
+    beyond y_lo and at or beyond y_up, beside the data's followers' shares.
+
+    The tests clip outcomes to [y_lo, y_up] (the 0.2 / 0.8 quantiles of the D0 subset, so
+    about a fifth of the data sits at each bound): a twin in the wrong unit piles up at one
+    bound, where a test may not reject it, and this table shows it.
+    """
+    rows = []
+    outcome = hyps["outcome"].to_numpy()
+    for part, ragged in (("twin", samples.twin), ("data", samples.follow)):
+        gid = ragged.group_ids()
+        lo = ragged.values <= samples.y_lo[gid]
+        up = ragged.values >= samples.y_up[gid]
+        frame = pd.DataFrame({"outcome": outcome[gid], "lo": lo, "up": up})
+        g = frame.groupby("outcome")
+        rows.append(pd.DataFrame({f"{part}_outputs": g.size(),
+                                  f"{part}_at_y_lo": g["lo"].mean(),
+                                  f"{part}_at_y_up": g["up"].mean()}))
+    out = pd.concat(rows, axis=1).reset_index().rename(columns={"index": "outcome"})
+    counts = ["twin_outputs", "data_outputs"]
+    out[counts] = out[counts].fillna(0).astype("int64")
+    return out[["outcome", "twin_outputs", "twin_at_y_lo", "twin_at_y_up", "data_outputs",
+                "data_at_y_lo", "data_at_y_up"]]
+
+
+def clipped_warnings(clipped: pd.DataFrame) -> list[str]:
+    """One line per twin and outcome whose outputs sit at one bound more than CLIPPED_WARN
+    of the time (a unit or scale error the tests may not be able to reject)."""
+    out = []
+    for r in clipped.itertuples():
+        for side in ("lo", "up"):
+            share = getattr(r, f"twin_at_y_{side}")
+            if share > CLIPPED_WARN:
+                out.append(f"twin {r.twin}: {share:.0%} of its {r.outcome} outputs are at or "
+                           f"beyond y_{side} (data: {getattr(r, f'data_at_y_{side}'):.0%}): "
+                           "a unit or scale error? The tests see only the clipped values")
+    return out
+
+
 def _md(df: pd.DataFrame) -> str:
     return markdown_table(df, ".3g")
 
@@ -353,8 +427,11 @@ def study_summary(
     hyps: pd.DataFrame,
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
+    methods: Mapping[str, Mapping] | None = None,
 ) -> dict[str, pd.DataFrame]:
-    """Tables of the study summary. twins: name -> {"runs": ..., "results": ...}.
+    """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
+    optionally "clipped": clipped_shares(...)}; methods: ``testing.methods`` (which
+    hypotheses each method refuses, see ``refused``).
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
     clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
@@ -367,7 +444,8 @@ def study_summary(
     })  # fmt: skip
     hyp = hyps.groupby("kind").agg(parameter_sets=("hyp_id", "size")).reset_index()
     hyp["hypotheses"] = 2 * hyp["parameter_sets"]
-    runs_rows, clamp_rows, rej_rows, unt_rows = [], [], [], []
+    runs_rows, clamp_rows, rej_rows, unt_rows, clip_rows = [], [], [], [], []
+    failing: list[str] = []
     for name, parts in twins.items():
         runs, res = parts["runs"], parts["results"]
         counts = runs.groupby(["t", "status"]).size().rename("rows").reset_index()
@@ -376,8 +454,10 @@ def study_summary(
         cl = clamp_shares(runs)
         cl.insert(0, "twin", name)
         clamp_rows.append(cl)
-        g = res.groupby(["method", "kind"])
-        rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum()}).reset_index()
+        g = res.assign(untestable=refused(res, methods)).groupby(["method", "kind"])
+        rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum(),
+                            "untestable": g["untestable"].sum()}).reset_index()
+        rej["tested"] = rej["hypotheses"] - rej["untestable"]
         rej.insert(0, "twin", name)
         rej_rows.append(rej)
         first = res.drop_duplicates("hyp_id")
@@ -386,6 +466,12 @@ def study_summary(
         u = unt.groupby("kind")[["untestable", "n_zero", "nhat_zero"]].sum().reset_index()
         u.insert(0, "twin", name)
         unt_rows.append(u)
+        if "init_stay_id" in runs and failing_patients(runs, name):
+            failing.append(failing_patients(runs, name))
+        if parts.get("clipped") is not None:
+            cp = parts["clipped"].copy()
+            cp.insert(0, "twin", name)
+            clip_rows.append(cp)
 
     def cat(frames, cols):
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=cols)
@@ -395,8 +481,13 @@ def study_summary(
         "hypotheses": hyp,
         "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
         "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
-        "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected"]),
+        "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected",
+                                     "untestable", "tested"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
+        "failing": pd.DataFrame({"warning": failing}, dtype=object),
+        "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
+                                   "twin_at_y_up", "data_outputs", "data_at_y_lo",
+                                   "data_at_y_up"]),
     }
 
 
@@ -405,14 +496,30 @@ _TITLES = {
     "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
     "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
     "clamps": "Share of twin initial states clamped, per feature",
-    "rejections": "Rejections per twin, method and kind (after correction)",
+    "rejections": "Rejections per twin, method and kind (after correction); untestable: "
+                  "hypotheses the method refused (p = 1 by rule: n or nhat = 0, or below "
+                  "the bootstrap's min_n), so tested = hypotheses - untestable",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
+    "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
+               "y_up, per twin and outcome",
 }
+
+
+def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+    clipped = tables.get("clipped")
+    failing = tables.get("failing")
+    return ([*failing["warning"]] if failing is not None else []) + (
+        clipped_warnings(clipped) if clipped is not None and len(clipped) else [])
 
 
 def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
     out = [f"# Study `{study}`: summary", ""]
+    warnings = _warnings(tables)
+    if warnings:
+        out += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
     for key, title in _TITLES.items():
+        if key not in tables:
+            continue
         df = tables[key]
         out += [f"## {title}", "", _md(df) if len(df) else "_none_", ""]
     return "\n".join(out)
@@ -427,7 +534,13 @@ def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
         f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
     ]
+    warnings = _warnings(tables)
+    if warnings:
+        out.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings)
+                   + "</ul>")
     for key, title in _TITLES.items():
+        if key not in tables:
+            continue
         df = tables[key]
         body = (
             df.to_html(index=False, float_format=lambda v: f"{v:.3g}") if len(df) else "<p>none</p>"

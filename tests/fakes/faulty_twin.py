@@ -42,9 +42,16 @@ Faults the conformance check (``python -m twinfalsify.runs.check``) must name:
     stale_restore   reuse the hours cached for the seed whatever the doses (a save/restore
                     keyed on X_0 alone); advertise it with --save-restore
     early_truncate  with continue_while, stop after hour 1 even when a path still holds
+Wrong twins that speak the protocol perfectly (the check's behaviour rows must name them):
+
+    shifted         hours shifted by one: the answer's hour 1 is X_0, hour h the good hour h-1
+    dose2_ignored   the hour-2 dose is ignored (the hour-1 dose reused for hour 2)
+    glucose_mmol    Glucose in mmol/L (the good value / 18.016), still labelled mg/dL
+    x0_ignored      the same trajectory for every X_0 (a fixed patient replaces X_0)
 Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 ``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2),
-``no_hello`` (exit at once), ``no_bye`` (shutdown is ignored: no bye, no exit until
+``no_hello`` (exit at once), ``unflushed`` (never flush stdout: answers sit in the pipe's
+buffer until the twin exits), ``no_bye`` (shutdown is ignored: no bye, no exit until
 stdin closes), ``silent_unknown`` (an unknown op gets no answer).
 
 ``--batch N`` advertises ``capabilities.batch: N`` and answers
@@ -88,11 +95,11 @@ RUN_MODES = (
     "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
     "batch_short", "implausible", "negative",
     "chatty", "nondeterministic", "lookahead", "batch_differs", "stale_restore",
-    "early_truncate",
+    "early_truncate", "shifted", "dose2_ignored", "glucose_mmol", "x0_ignored",
 )
 DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello", "no_bye",
-              "silent_unknown")
+              "silent_unknown", "unflushed")
 
 
 def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
@@ -109,6 +116,11 @@ def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
     return hours
 
 
+# x0_ignored: the patient every run starts from, whatever X_0 the request gives
+FIXED_X0 = {"age": 65.0, "sex": 0.0, "weight": 80.0, "HR": 90.0, "SysBP": 115.0, "DiaBP": 60.0,
+            "MeanBP": 78.0, "RR": 20.0, "Temp_C": 37.0, "Potassium": 4.1, "Sodium": 139.0,
+            "Chloride": 104.0, "Glucose": 130.0, "Calcium": 8.4, "HCO3": 24.0, "paO2": 110.0,
+            "paCO2": 40.0, "Arterial_pH": 7.38}
 _PREFIXES: dict[str, Any] = {"seed": None, "done": set()}
 _STALE: dict[int, list[dict]] = {}  # stale_restore: hours cached per seed, doses ignored
 
@@ -165,7 +177,15 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     mode = next((m for m, sel in modes if m in RUN_MODES and _matches(sel, seed)), "ok")
     t0 = time.time()
     x0, doses, hours_asked = msg["x0"], msg["doses"], int(msg["hours"])
+    if mode == "x0_ignored":
+        x0 = dict(FIXED_X0)
+    if mode == "dose2_ignored" and len(doses) >= 2:
+        doses = [doses[0], doses[0], *doses[2:]]
     hours = expected(x0, doses[:hours_asked], seed, args.wobble)
+    if mode == "shifted":
+        hours = [{f: float(x0[f]) for f in FEATURES}, *hours[:-1]]
+    elif mode == "glucose_mmol":
+        hours = [{**h, "Glucose": h["Glucose"] / 18.016} for h in hours]
     cut = hours_asked
     if mode == "lookahead":  # every hour sees the whole request's IV total
         total = sum(float(d[0]) for d in doses[:hours_asked])
@@ -266,10 +286,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 4
 
     out = sys.stdout
+    if "unflushed" in twin_modes:  # block-buffered whatever PYTHONUNBUFFERED says
+        out = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=65536)
 
     def send(message: dict[str, Any]) -> None:
         out.write(encode(message))
-        out.flush()
+        if "unflushed" not in twin_modes:
+            out.flush()
 
     def send_log(text: str) -> None:  # a log line where only protocol messages belong
         out.write(text + "\n")
@@ -351,6 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         send(answer)
         if mode == "chatty":
             send_log(f"INFO simulated {msg['id']}")
+    out.flush()  # what a buffered twin's exit does: stdin closed, buffer written
     return 0
 
 

@@ -171,6 +171,7 @@ SECONDS_PER_TWIN_HOUR = {
     "biased": 0.01,
     "fitted": 0.01,
     "command": 150.0,
+    "python": 150.0,  # unknown cost, as a command twin: a generous Slurm budget
 }
 
 
@@ -183,11 +184,20 @@ def shard_spec(wildcards):
     return canon(spec)
 
 
+def served_twin(spec):
+    """Whether a twin runs through the protocol client: a command twin, a twin served with
+    ``protocol: true``, a python twin with more than one worker."""
+    return bool(spec["kind"] == "command" or spec.get("protocol")
+                or (spec["kind"] == "python" and int(spec.get("workers", 1)) > 1))
+
+
 def served_modules(twin):
     """Library modules a twin runs as a subprocess (``python -m twinfalsify.X``): they are
     not imported by the rule script, so they are named for its code fingerprint."""
     spec = config["twins"][twin]
     if spec.get("protocol") and spec["kind"] != "command":
+        return ["twinfalsify.runs.serve"]
+    if spec["kind"] == "python" and int(spec.get("workers", 1)) > 1:
         return ["twinfalsify.runs.serve"]
     command = spec.get("command") or []
     words = shlex.split(command) if isinstance(command, str) else command
@@ -204,9 +214,12 @@ def shard_code(twin, script="twin_shard"):
     so editing them reruns exactly its shards and what follows (twinfalsify.runs.command).
     """
     spec = config["twins"][twin]
-    in_process = spec["kind"] != "command" and not spec.get("protocol")
     fingerprint = code(script, served_modules(twin),
-                       PROTOCOL_CLIENT_MODULES if in_process else ())
+                       () if served_twin(spec) else PROTOCOL_CLIENT_MODULES)
+    if spec["kind"] == "python":  # the factory module's source
+        from twinfalsify.runs.registry import python_fingerprint
+
+        return f"{fingerprint}+{python_fingerprint(spec, twin)}"
     if spec["kind"] != "command":
         return fingerprint
     if twin not in _COMMAND_CODE:  # once per parse, not once per shard job
@@ -229,7 +242,7 @@ def shard_mem_mb(wildcards, threads):
     """Builtin twins hold the shard's node table in memory; a twin served over the protocol
     runs one process per worker (Pulse: ~110 MB per engine, plus headroom)."""
     spec = twin_spec(wildcards)
-    if spec["kind"] == "command" or spec.get("protocol"):
+    if spec["kind"] in ("command", "python") or spec.get("protocol"):
         return 1000 + 250 * threads
     return 4000
 
@@ -240,7 +253,7 @@ def shard_runtime(wildcards, input, threads):
     protocol/command twin by its timeout_s (the runner kills a run at that limit); summed,
     over the workers, doubled for safety, at least 10 minutes."""
     spec = twin_spec(wildcards)
-    served = spec["kind"] == "command" or spec.get("protocol")
+    served = served_twin(spec)
     minutes = shard_runtime_minutes(
         json.loads(Path(input.plan).read_text()),
         int(wildcards.shard),

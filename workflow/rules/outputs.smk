@@ -291,6 +291,11 @@ rule summary:
         d0=f"{R}/d0.parquet",
         d=f"{R}/d.parquet",
         hypotheses=f"{R}/design/hypotheses.parquet",
+        actions=f"{R}/design/actions.json",
+        bins=f"{R}/design/bins.json",
+        counts=f"{R}/observational/counts.parquet",
+        follow=f"{R}/observational/follow.parquet",
+        plan=f"{R}/twin_plan.json",
         runs=[f"{twin_dir(t)}/runs.parquet" for t in TWINS],
         results=[f"{twin_dir(t)}/results.parquet" for t in TWINS],
     output:
@@ -312,6 +317,7 @@ rule summary:
     params:
         study=STUDY,
         twins=TWINS,
+        testing=canon(config["testing"]),
         code=code("summary"),
     script:
         "../../scripts/summary.py"

@@ -25,8 +25,21 @@ save/restore     a run branched from a shared prefix equals the same run alone (
                  ``save_restore``)
 truncation       a truncated run keeps the hours a path still needs and equals the full
                  run there (if ``truncate``)
-time             the slowest run against ``timeout_s`` (fails above half of it)
+time             the slowest run against ``timeout_s`` (fails above half of it), and the
+                 seconds per simulated hour a study's cost grows with
 shutdown         ``shutdown`` is answered ``bye`` and the process exits with code 0
+
+and then, on the answers, whether the twin behaves like a simulator of the patient it is
+given (a twin can speak the protocol perfectly and still be wrong in these ways):
+
+hour 1           hour 1 is not a copy of X_0 (hours shifted by one)
+X_0              two different X_0 (same seed, same doses) give different trajectories
+doses            a dose changed at hour h changes some output at an hour >= h; a warning
+                 ("the action at hour 2 changes nothing") when it does not
+units            each feature's hour-1 median against the data's (``--table``, or the
+                 source of ``--config``) or else against X_0's: a ratio far from 1 is named
+                 with the unit that explains it ("Glucose: twin median 6.1, data 128
+                 mg/dL: mmol/L?")
 """
 
 from __future__ import annotations
@@ -53,9 +66,13 @@ from twinfalsify.runs.runner import (
     resolve_command,
 )
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, STAY_ID, T_MAX, TIME, ContractError
+from twinfalsify.unitscreen import against_reference
 
 UNITS = {f.name: f.unit for f in FEATURE_TABLE}
-DEFAULT_TIMEOUT_S = 60.0  # per run, when the spec gives no timeout_s
+# per run, when the spec gives no timeout_s: the study's own default, so that a twin the
+# check passes is not timed out by the study
+DEFAULT_TIMEOUT_S = 600.0
+PHYSIOLOGY = [k for k, f in enumerate(FEATURE_TABLE) if f.kind != "demographic"]
 QUIET_S = 0.2  # how long to listen for stray stdout lines after an answer
 # Dose sequences every X_0 is run under: none, fluids only, fluids and a vasopressor
 # (iv_fluid mL/h, vasopressor ug/kg/min per hour), within the ranges a study sends.
@@ -75,6 +92,7 @@ class Outcome:
     ok: bool | None
     detail: str
     fix: str = ""
+    warn: bool = False  # passed, but with a warning the author should read
 
 
 FIXES = {
@@ -109,7 +127,23 @@ FIXES = {
                   "run; or drop 'truncate' from the capabilities",
     "time": "raise the twin's timeout_s in the config, or make a run faster",
     "shutdown": "answer {\"op\": \"shutdown\"} with {\"op\": \"bye\"}, then exit with code 0",
+    "hour 1": "answer with the state at the END of each hour 1..hours: the first hour object "
+              "is after one hour of the first dose, never X_0 itself",
+    "X_0": "build the simulated patient from the request's x0 (not a fixed or cached "
+           "patient)",
+    "doses": "apply the dose of hour h (doses[h-1]) during hour h; a twin that "
+             "truly ignores a drug can keep the warning",
+    "units": "convert every output to the contract's unit (docs/twin-protocol.md, "
+             "'Features'): the unit named after '?' is the one the values look like",
 }
+HINT_UNFLUSHED = ("flush stdout after every answer: print(..., flush=True) or "
+                  "sys.stdout.flush() (or run python -u); a pipe holds unflushed lines")
+HINT_SLOW_START = ("if the twin needs long to start (loading a model, an engine), raise "
+                   "timeout_s in its config entry (hello waits max(timeout_s, "
+                   f"{STARTUP_TIMEOUT_S:g} s))")
+HINT_EXIT = ("the twin exited mid-run: the stderr tail above says why; catch exceptions "
+             "per request and answer {\"status\": \"error\", \"message\": ...} instead of "
+             "exiting")
 
 
 def shipped_x0(n: int = 4, seed: int = 11) -> list[dict[str, float]]:
@@ -158,6 +192,7 @@ class Checker:
     command: list[str]
     env: dict[str, str] | None
     timeout_s: float
+    startup_timeout_s: float | None = None  # hello wait; None: max(timeout_s, 60 s)
     outcomes: list[Outcome] = field(default_factory=list)
     hello: dict[str, Any] = field(default_factory=dict)
     _workers: list[_Worker] = field(default_factory=list)
@@ -165,9 +200,11 @@ class Checker:
     _ids: int = 0
 
     # -- plumbing ----------------------------------------------------------------------
-    def add(self, name: str, ok: bool | None, detail: str) -> None:
-        self.outcomes.append(Outcome(name, ok, detail, FIXES.get(name, "") if ok is False
-                                     else ""))
+    def add(self, name: str, ok: bool | None, detail: str, fix: str = "",
+            warn: bool = False) -> None:
+        if ok is False or warn:
+            fix = fix or FIXES.get(name, "")
+        self.outcomes.append(Outcome(name, ok, detail, fix, warn))
 
     def start(self) -> _Worker:
         worker = _Worker(self.command, self.env)
@@ -237,11 +274,9 @@ class Checker:
             self.add("starts", False, str(exc))
             return None
         try:
-            msg = worker.ask({"op": "hello", "protocol": 1},
-                             max(self.timeout_s, STARTUP_TIMEOUT_S))
+            msg = worker.ask({"op": "hello", "protocol": 1}, self.hello_wait)
         except _WorkerTimeout:
-            self.add("hello", False, f"no hello answer within "
-                     f"{max(self.timeout_s, STARTUP_TIMEOUT_S):g} s")
+            self.add("hello", False, *self._why_no_hello(worker))
             return None
         except _WorkerDied as exc:
             self.add("starts", False, f"the twin exited before answering hello: {exc}")
@@ -265,6 +300,42 @@ class Checker:
                      f"up to {T_MAX} hours (or set design.horizon <= {max_hours})")
         return worker
 
+    @property
+    def hello_wait(self) -> float:
+        """How long a hello may take: as in a study, unless the caller set it."""
+        if self.startup_timeout_s is not None:
+            return self.startup_timeout_s
+        return max(self.timeout_s, STARTUP_TIMEOUT_S)
+
+    def _why_no_hello(self, worker: _Worker) -> tuple[str, str]:
+        """(detail, fix) for a hello that did not come: closing stdin makes a buffering
+        twin exit and flush, so an answer arriving then shows unflushed stdout."""
+        detail = f"no hello answer within {self.hello_wait:g} s"
+        alive = worker.proc.poll() is None
+        try:
+            assert worker.proc.stdin is not None
+            worker.proc.stdin.close()
+        except (OSError, ValueError):
+            pass
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            try:
+                line = worker.lines.get(timeout=max(deadline - time.monotonic(), 0.0))
+            except Exception:  # noqa: BLE001 - queue.Empty
+                break
+            if line is None:
+                break
+            if '"hello"' in line:
+                return (detail + "; the hello answer came only when stdin was closed: "
+                        "stdout is not flushed", HINT_UNFLUSHED)
+        worker.kill()
+        tail = worker.tail()
+        if alive:
+            return (detail + " (the twin was running" + (f"; stderr tail: {tail})" if tail
+                                                         else ", silent on stderr)"),
+                    f"{HINT_SLOW_START}; or {HINT_UNFLUSHED}")
+        return detail + (f"; stderr tail: {tail}" if tail else ""), HINT_EXIT
+
     def run_battery(self, worker: _Worker, x0s: list[dict[str, float]]) -> list[_Run]:
         """Every X_0 under every dose sequence; checks protocol, stdout, statuses, ranges."""
         hours = min(T_MAX, self.hello["capabilities"].get("max_hours") or T_MAX)
@@ -283,7 +354,8 @@ class Checker:
         broken = [r for r in runs if r.problem and "timeout" not in r.problem]
         self.add("protocol", not broken,
                  f"{len(runs) - len(broken)} of {len(runs)} answers follow the protocol"
-                 + (f"; first: {broken[0].problem}" if broken else ""))
+                 + (f"; first: {broken[0].problem}" if broken else ""),
+                 fix=HINT_EXIT if broken and "exited during" in broken[0].problem else "")
         # one request = one answer: stray lines, and an unknown op answered with an error
         unknown = self._unknown_op(worker)
         problems = stray + ([unknown] if unknown else [])
@@ -320,10 +392,14 @@ class Checker:
             self.add("time", False, f"{len(timed_out)} run(s) without an answer within "
                      f"timeout_s = {self.timeout_s:g} s")
         else:
+            answered = [r for r in ok if r.values is not None and len(r.values)]
+            sim_hours = sum(len(r.values) for r in answered)
+            per_hour = (f"; {sum(r.seconds for r in answered) / sim_hours:.3g} s per "
+                        "simulated hour" if sim_hours else "")
             self.add("time", slowest <= 0.5 * self.timeout_s,
                      f"slowest run {slowest:.3g} s for {hours} h, timeout_s {self.timeout_s:g}"
                      f" s" + (" (more than half of it)" if slowest > 0.5 * self.timeout_s
-                              else ""))
+                              else "") + per_hour)
         return runs
 
     def _hello_quietly(self, worker: _Worker) -> None:
@@ -464,6 +540,96 @@ class Checker:
         self.add("truncation", not notes, notes[0] if notes else
                  "stops only where no path needs more, values equal to the full run")
 
+    # -- behaviour: a twin that speaks the protocol can still simulate the wrong thing ----
+    @staticmethod
+    def _ok_runs(runs: Sequence[_Run]) -> list[_Run]:
+        return [r for r in runs if r.status == "ok" and r.values is not None
+                and len(r.values)]
+
+    def check_hour1(self, runs: Sequence[_Run]) -> None:
+        ok = self._ok_runs(runs)
+        if not ok:
+            self.add("hour 1", None, "no ok run to look at")
+            return
+        copies = 0
+        for r in ok:
+            x0 = np.array([r.request["x0"][f] for f in FEATURES], dtype=float)
+            # every physiological feature unchanged after an hour: X_0 handed back as hour 1
+            copies += bool(np.array_equal(r.values[0, PHYSIOLOGY], x0[PHYSIOLOGY]))
+        self.add("hour 1", copies < len(ok),
+                 f"hour 1 equals X_0 in all {len(ok)} ok runs (every physiological feature): "
+                 "hours shifted by one?" if copies == len(ok) else
+                 f"hour 1 differs from X_0 in {len(ok) - copies} of {len(ok)} ok runs")
+
+    def check_x0(self, x0s: Sequence[dict[str, float]], hours: int) -> None:
+        if len(x0s) < 2:
+            self.add("X_0", None, "one X_0 only: nothing to compare")
+            return
+        worker = self.main()
+        a = self.simulate(worker, self.request(x0s[0], DOSES[1][:hours], 4242))
+        b = self.simulate(self.main(), self.request(x0s[1], DOSES[1][:hours], 4242))
+        if a.status != "ok" or b.status != "ok":
+            self.add("X_0", None, f"runs answered {a.problem or a.status!r} and "
+                     f"{b.problem or b.status!r}: nothing to compare")
+            return
+        differ = [f for f in FEATURES if x0s[0][f] != x0s[1][f]]
+        same = not self.same(a, b)
+        self.add("X_0", not same,
+                 f"the same trajectory from 2 X_0 that differ in {len(differ)} features "
+                 f"(e.g. {differ[0]} {x0s[0][differ[0]]:.4g} vs {x0s[1][differ[0]]:.4g}), same "
+                 "seed and doses: X_0 is ignored" if same else
+                 "2 different X_0 (same seed and doses) give different trajectories")
+
+    def check_doses(self, x0: dict[str, float], hours: int) -> None:
+        base_doses = [list(d) for d in DOSES[2][:hours]]
+        worker = self.main()
+        base = self.simulate(worker, self.request(x0, base_doses, 4343))
+        if base.status != "ok":
+            self.add("doses", None, f"the base run answered {base.problem or base.status!r}")
+            return
+        silent, compared = [], 0
+        for h in range(1, hours + 1):
+            changed = [list(d) for d in base_doses]
+            changed[h - 1] = [changed[h - 1][0] + 400.0, changed[h - 1][1] + 0.4]
+            run = self.simulate(self.main(), self.request(x0, changed, 4343))
+            if run.status != "ok" or len(run.values) < h:
+                continue
+            compared += 1
+            later = slice(h - 1, None)
+            if np.array_equal(run.values[later], base.values[later], equal_nan=True):
+                silent.append(h)
+        if not compared:
+            self.add("doses", None, "no ok run with a changed dose to compare")
+        elif silent:
+            what = (f"the action at hour {silent[0]} changes nothing" if len(silent) == 1 else
+                    f"the actions at hours {', '.join(map(str, silent))} change nothing")
+            self.add("doses", True, f"{what} (IV fluid +400 mL/h and vasopressor +0.4 "
+                     "ug/kg/min at that hour; every output of that hour and later equal)",
+                     warn=True)
+        else:
+            self.add("doses", True, f"a dose changed at hour h changes an output at an hour "
+                     f">= h (h = 1..{hours})")
+
+    def check_units(self, runs: Sequence[_Run], reference: dict[str, float] | None,
+                    ref_name: str) -> None:
+        ok = self._ok_runs(runs)
+        if not ok:
+            self.add("units", None, "no ok run to look at")
+            return
+        first = np.array([r.values[0] for r in ok])
+        twin = dict(zip(FEATURES, np.nanmedian(first, axis=0), strict=True))
+        if reference is None:
+            reference = {f: float(np.median([r.request["x0"][f] for r in ok]))
+                         for f in FEATURES}
+        found = [m for f in FEATURES if f != "sex" and f in reference
+                 for m in [against_reference(f, float(twin[f]), reference[f],
+                                             ref_name=ref_name)] if m]
+        self.add("units", not found, found[0] + (f" (and {len(found) - 1} more: "
+                 + "; ".join(found[1:]) + ")" if len(found) > 1 else "") if found else
+                 f"every feature's hour-1 median within a factor 2 of "
+                 f"{'the data' if ref_name == 'data' else ref_name}'s "
+                 f"({len(ok)} ok runs)")
+
     def check_shutdown(self) -> None:
         worker = self.main()
         try:
@@ -487,9 +653,15 @@ class Checker:
 
 def run_checks(command: Sequence[str], env: dict[str, str] | None = None,
                timeout_s: float = DEFAULT_TIMEOUT_S,
-               x0s: list[dict[str, float]] | None = None) -> list[Outcome]:
-    """Every check against ``command``; the report's rows in order."""
-    checker = Checker(list(command), env, float(timeout_s))
+               x0s: list[dict[str, float]] | None = None,
+               reference: dict[str, float] | None = None, ref_name: str = "X_0",
+               startup_timeout_s: float | None = None) -> list[Outcome]:
+    """Every check against ``command``; the report's rows in order.
+
+    reference: the data's hour-1 median per feature (``data_reference``) for the unit
+    screen; None compares the twin's hour 1 with the X_0 it was given.
+    """
+    checker = Checker(list(command), env, float(timeout_s), startup_timeout_s)
     try:
         worker = checker.check_hello()
         if worker is None:
@@ -511,6 +683,13 @@ def run_checks(command: Sequence[str], env: dict[str, str] | None = None,
                   ("save/restore", lambda: checker.check_save_restore(x0s[0])),
                   ("truncation", lambda: checker.check_truncation(x0s[0])),
                   ("shutdown", checker.check_shutdown)]
+        hours = min(T_MAX, checker.hello["capabilities"].get("max_hours") or T_MAX)
+        behaviour: list[Callable[[], None]] = [
+            lambda: checker.check_hour1(runs),
+            lambda: checker.check_x0(x0s, hours),
+            lambda: checker.check_doses(x0s[0], hours),
+            lambda: checker.check_units(runs, reference, "data" if reference else ref_name)]
+        steps[-1:-1] = [(str(k), step) for k, step in enumerate(behaviour)]
         for _, step in steps:
             step()
     finally:
@@ -523,26 +702,63 @@ def report(outcomes: list[Outcome]) -> str:
     width = max(len(o.name) for o in outcomes)
     lines = []
     for o in outcomes:
-        mark = {True: "pass", False: "FAIL", None: "skip"}[o.ok]
+        mark = "WARN" if o.warn and o.ok is not False else \
+            {True: "pass", False: "FAIL", None: "skip"}[o.ok]
         lines.append(f"{o.name:<{width}}  {mark}  {o.detail}")
         if o.fix:
             lines.append(f"{'':<{width}}        fix: {o.fix}")
     failed = [o.name for o in outcomes if o.ok is False]
+    warned = [o.name for o in outcomes if o.warn and o.ok is not False]
     lines.append(f"{len(failed)} check(s) failed: {', '.join(dict.fromkeys(failed))}"
                  if failed else "all checks passed")
+    if warned:
+        lines[-1] += f" ({len(warned)} warning(s): {', '.join(warned)})"
     return "\n".join(lines)
 
 
+def data_reference(trajectories: Any) -> dict[str, float]:
+    """The hour-1 median of every feature in a trajectory frame (the unit screen's
+    reference: what a twin's hour 1 should resemble)."""
+    hour1 = trajectories[trajectories[TIME] == 1]
+    return {f: float(hour1[f].median()) for f in FEATURES if hour1[f].notna().any()}
+
+
+def data_of_config(config: dict[str, Any]) -> Any | None:
+    """The study's trajectories when they are cheap to get (a table source, or the
+    synthetic world drawn afresh); None for a source that needs an extraction."""
+    source = config.get("source") or {}
+    if source.get("kind") == "table" and (source.get("table") or {}).get("path"):
+        from twinfalsify.sources.table import read_table
+
+        return read_table(source["table"]["path"])
+    if source.get("kind") == "synthetic":
+        from twinfalsify.sources.synthetic import generate
+
+        return generate(source.get("synthetic"), seed=int(config.get("seed", 0)))
+    return None
+
+
+def _x0_of(trajectories: Any, n: int = 4) -> list[dict[str, float]]:
+    first = trajectories[trajectories[TIME] == 0].head(n)
+    return [{f: float(v) for f, v in zip(FEATURES, row, strict=True)}
+            for row in first[list(FEATURES)].to_numpy()]
+
+
+
 def command_of(spec: dict[str, Any], name: str = "twin") -> tuple[list[str], dict | None, float]:
-    """(command, env, timeout_s) of a ``kind: command`` twin spec, as a study starts it."""
+    """(command, env, timeout_s) of a ``kind: command`` twin spec, as a study starts it; a
+    ``kind: python`` twin is checked served over the protocol, as a study with
+    ``workers`` > 1 runs it (its timeout_s default is then the served twins' 60 s)."""
     from twinfalsify.runs.registry import make_twin
 
-    if spec.get("kind") != "command":
-        raise ContractError(f"twins.{name}: the check runs twins of kind command (this one is "
-                            f"kind {spec.get('kind')!r}); the builtin twins conform by "
-                            "construction")
+    if spec.get("kind") not in ("command", "python"):
+        raise ContractError(f"twins.{name}: the check runs twins of kind command or python "
+                            f"(this one is kind {spec.get('kind')!r}); the builtin twins "
+                            "conform by construction")
+    if spec.get("kind") == "python":
+        spec = {**spec, "protocol": True}
     twin = make_twin(name, spec)
-    timeout = float(spec["timeout_s"]) if "timeout_s" in spec else DEFAULT_TIMEOUT_S
+    timeout = float(twin.timeout_s)
     env = None
     if twin.env:
         import os
@@ -562,6 +778,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--twin", help="the twin's name in --config")
     parser.add_argument("--x0", help="take the X_0 of the first 4 stays of this trajectory "
                         "table instead of the shipped synthetic patients")
+    parser.add_argument("--table", help="a trajectory table (the table contract): its first "
+                        "4 stays give the X_0 and its hour-1 medians the unit screen's "
+                        "reference (with --config: the study's source does, if cheap)")
     parser.add_argument("--timeout-s", type=float, help="per-run time limit (default: the "
                         f"spec's timeout_s, else {DEFAULT_TIMEOUT_S:g})")
     args = parser.parse_args(argv)
@@ -587,10 +806,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     command, env, timeout = command_of(spec, name)
     if args.timeout_s is not None:
         timeout = args.timeout_s
-    x0s = x0_from_table(args.x0) if args.x0 else None
-    print(f"checking twin {shlex.join(command)} (timeout_s {timeout:g})", flush=True)
+    data = None
+    if args.table:
+        from twinfalsify.sources.table import read_table
+
+        data = read_table(args.table)
+    elif args.config:
+        from twinfalsify.io import load_yaml_strict
+
+        data = data_of_config(load_yaml_strict(args.config) or {})
+    x0s = x0_from_table(args.x0) if args.x0 else (_x0_of(data) if data is not None else None)
+    reference = data_reference(data) if data is not None else None
+    print(f"checking twin {shlex.join(command)} (timeout_s {timeout:g}; units against "
+          f"{'the data' if reference else 'X_0'})", flush=True)
     t0 = time.monotonic()
-    outcomes = run_checks(command, env, timeout, x0s)
+    outcomes = run_checks(command, env, timeout, x0s, reference)
     print(report(outcomes))
     print(f"({time.monotonic() - t0:.1f} s)")
     return 1 if any(o.ok is False for o in outcomes) else 0

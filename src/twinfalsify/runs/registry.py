@@ -17,7 +17,7 @@ from twinfalsify.sources.synthetic import SyntheticWorld
 from twinfalsify.twins.base import Twin
 
 BUILTIN_KINDS = ("oracle", "biased", "fitted")
-KINDS = (*BUILTIN_KINDS, "command")
+KINDS = (*BUILTIN_KINDS, "python", "command")
 # how, not what, to run
 RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size",
                "fail_fast_runs", "max_restarts")
@@ -26,6 +26,7 @@ RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size
 # (docs/how-to/run-workflow.md, "What reruns after which change").
 EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_runs",
                   "max_restarts")
+COMMAND_TIMEOUT_S = 600.0  # per run, for a kind command twin whose spec gives no timeout_s
 _SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
 
 
@@ -104,6 +105,12 @@ def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
         key = next(k for k in ("shift", "scale", "dose_effect") if spec.get(k))
         raise ContractError(f"twins.{name}.{key}: only kind biased takes {key} "
                             f"(this twin is kind {kind})")
+    if kind == "python":
+        python_source(name, spec)  # the factory's module must be findable
+    elif any(spec.get(k) for k in ("factory", "options")):
+        key = next(k for k in ("factory", "options") if spec.get(k))
+        raise ContractError(f"twins.{name}.{key}: only kind python takes {key} (this twin is "
+                            f"kind {kind})")
     if kind == "command" and not spec.get("command"):
         raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
     if kind == "command":
@@ -124,8 +131,13 @@ def make_twin(
     folder/JSON file holding it as twin_context.json), needed by builtin twins.
     """
     kind = spec.get("kind")
+    if kind == "python" and (spec.get("protocol") or int(spec.get("workers", 1)) > 1):
+        # as the builtins: more than one worker means subprocesses over the protocol
+        return served_builtin(name, spec, context, need_context=False)
     if spec.get("protocol") and kind in BUILTIN_KINDS:
         return served_builtin(name, spec, context)
+    if kind == "python":
+        return python_twin(name, spec)
     ctx = _load_context(context)
     if kind == "oracle":
         from twinfalsify.twins.builtin import OracleTwin
@@ -162,7 +174,7 @@ def make_twin(
             command = shlex.split(command)
         if not command:
             raise ContractError(f"twins.{name}: kind command needs a 'command' (string or list)")
-        opts = _runner_options(spec, 600.0)
+        opts = _runner_options(spec, COMMAND_TIMEOUT_S)
         if command[0] in ("python", "python3"):
             # "python" = the study's own interpreter, with this library importable, whatever
             # PATH says (a twin needing another interpreter, e.g. Pulse's, names its path).
@@ -187,7 +199,77 @@ def _runner_options(spec: dict[str, Any], timeout_s: float) -> dict[str, Any]:
     }
 
 
-def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict | None) -> Twin:
+def _factory(name: str, spec: dict[str, Any]) -> tuple[str, str]:
+    text = spec.get("factory")
+    module, _, attr = str(text or "").partition(":")
+    if not module or not attr:
+        raise ContractError(f"twins.{name}.factory: kind python needs 'module:callable' "
+                            f"(got {text!r}), e.g. factory: my_twin:make")
+    return module, attr
+
+
+def _with_path(spec: dict[str, Any]) -> None:
+    """Put the spec's ``path`` (default: the working folder) first on sys.path."""
+    folder = str(Path(spec.get("path") or ".").resolve())
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+
+
+def python_source(name: str, spec: dict[str, Any]) -> Path:
+    """The source file of a kind python twin's module (found, not imported)."""
+    import importlib.util
+
+    module, _ = _factory(name, spec)
+    _with_path(spec)
+    try:
+        found = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        found = None
+    if found is None or not found.origin or not Path(found.origin).is_file():
+        raise ContractError(f"twins.{name}.factory: cannot find module {module!r} (from "
+                            f"{Path(spec.get('path') or '.').resolve()}; set 'path' to the "
+                            "folder holding it)")
+    return Path(found.origin)
+
+
+def python_fingerprint(spec: dict[str, Any], name: str = "twin") -> str:
+    """SHA-256 (16 hex digits) of a kind python twin's module source; '' for other kinds:
+    editing the module reruns the twin's shards (as a command twin's files do)."""
+    import hashlib
+
+    if spec.get("kind") != "python":
+        return ""
+    return hashlib.sha256(python_source(name, spec).read_bytes()).hexdigest()[:16]
+
+
+def python_twin(name: str, spec: dict[str, Any]) -> Twin:
+    """Call a kind python twin's factory in this process; check what it returns."""
+    import importlib
+
+    module, attr = _factory(name, spec)
+    python_source(name, spec)
+    factory = getattr(importlib.import_module(module), attr, None)
+    if not callable(factory):
+        raise ContractError(f"twins.{name}.factory: {module} has no callable {attr!r}")
+    options = spec.get("options") or {}
+    if not isinstance(options, dict):
+        raise ContractError(f"twins.{name}.options: must be a mapping of keyword arguments")
+    twin = factory(**options)
+    if not callable(getattr(twin, "simulate", None)):
+        raise ContractError(f"twins.{name}.factory: {module}:{attr} returned "
+                            f"{type(twin).__name__}, which has no simulate(x0, doses, seeds) "
+                            "(twins/base.py: the Twin interface)")
+    if not isinstance(getattr(twin, "name", None), str):
+        try:
+            twin.name = name
+        except AttributeError:
+            raise ContractError(f"twins.{name}.factory: the twin needs a 'name' "
+                                "attribute") from None
+    return twin
+
+
+def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict | None,
+                   need_context: bool = True) -> Twin:
     """A builtin twin run as ``python -m twinfalsify.runs.serve`` subprocesses (ProtocolTwin).
 
     spec: the builtin spec plus ``protocol: true`` and the runner options
@@ -201,19 +283,22 @@ def served_builtin(name: str, spec: dict[str, Any], context: Path | str | dict |
     """
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
-    if context is None or isinstance(context, dict):
-        raise ContractError(
-            f"twins.{name}: protocol: true needs the study's twin context as a file "
-            "(results/<study>/twin_context.json), not an in-memory dict"
-        )
-    path = Path(context).resolve()
-    if not path.exists():
-        raise ContractError(f"twin context {path} does not exist")
     inner = {k: v for k, v in spec.items() if k not in RUNNER_KEYS}
-    command = [
-        sys.executable, "-m", "twinfalsify.runs.serve", name,
-        "--spec", json.dumps(inner, sort_keys=True), "--context", str(path),
-    ]  # fmt: skip
+    if inner.get("kind") == "python":  # the served process imports from the same folder
+        inner["path"] = str(Path(spec.get("path") or ".").resolve())
+    command = [sys.executable, "-m", "twinfalsify.runs.serve", name,
+               "--spec", json.dumps(inner, sort_keys=True)]
+    if context is None or isinstance(context, dict):
+        if need_context:
+            raise ContractError(
+                f"twins.{name}: protocol: true needs the study's twin context as a file "
+                "(results/<study>/twin_context.json), not an in-memory dict"
+            )
+    else:
+        path = Path(context).resolve()
+        if not path.exists():
+            raise ContractError(f"twin context {path} does not exist")
+        command += ["--context", str(path)]
     opts = _runner_options(spec, 60.0)
     opts["env"] = {"PYTHONPATH": _library_pythonpath(os.environ.get("PYTHONPATH")),
                    **(opts["env"] or {})}

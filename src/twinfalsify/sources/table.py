@@ -113,6 +113,12 @@ def _missing_columns(file: Path, columns: Sequence[str]) -> str | None:
     missing = [c for c in TABLE_COLUMNS if c not in columns]
     if not missing:
         return None
+    if len(columns) == 1:
+        for sep in (";", "\t", "|"):
+            if set(TABLE_COLUMNS) <= {c.strip() for c in str(columns[0]).split(sep)}:
+                return (f"{file}: one column {str(columns[0])[:60]!r}...: the file is "
+                        f"separated by {sep!r}, the table contract's CSV by ',' (write it "
+                        "with commas, e.g. pandas to_csv(path, index=False))")
     hints = [f"{alias!r} -> {c!r}" for c in missing for alias in _ALIASES.get(c, ())
              if alias in columns]
     return (f"{file}: missing column(s) {', '.join(missing)} (rule: every column of the "
@@ -158,7 +164,7 @@ def _where(df: pd.DataFrame, i: int, column: str | None = None) -> str:
     for col in (STAY_ID, TIME):
         v = df.at[i, col]
         if pd.notna(v) and col != column:
-            ids.append(f"{col} {int(v) if float(v).is_integer() else v}")
+            ids.append(f"{col} {int(v) if float(v).is_integer() else repr(float(v))}")
     inside = ", ".join([s for s in (line.rstrip(", "),) if s] + ids)
     return f"{file}: row {row}" + (f" ({inside})" if inside else "") + (
         f", column {column}" if column else "")
@@ -167,7 +173,8 @@ def _where(df: pd.DataFrame, i: int, column: str | None = None) -> str:
 def _show(value: object) -> str:
     """A cell for a message: numbers as written (1.5, 200001), anything else quoted."""
     if isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
-        return f"{float(value):g}" if not float(value).is_integer() else str(int(value))
+        # repr: the shortest text that reads back as this double (201204.5, not 201204)
+        return repr(float(value)) if not float(value).is_integer() else str(int(value))
     return repr(value)
 
 
@@ -305,6 +312,9 @@ def read_rows(path: str | Path) -> pd.DataFrame:
     """Every row of every table file at ``path``, with the file and row it came from."""
     source = check_headers(path)
     frames = [_read_one(f) for f in source.files]
+    if all(f.empty for f in frames):
+        raise ContractError(f"{', '.join(map(str, source.files))}: a header and no rows "
+                            "(rule: at least one stay)")
     return pd.concat(frames, ignore_index=True) if len(frames) > 1 else frames[0]
 
 
@@ -312,6 +322,16 @@ def read_table(path: str | Path, t_max: int = T_MAX) -> pd.DataFrame:
     """The trajectories of a table source, checked (ContractError: one line at the first
     broken rule), in the trajectory contract's columns and order."""
     return validate_table(read_rows(path), t_max)
+
+
+def unit_suspects(trajectories: pd.DataFrame) -> list[str]:
+    """One message per feature whose median (all rows) lies outside the range an ICU
+    cohort's median typically falls in, naming the unit that would explain it (values
+    inside the contract's wide ranges can still be in the wrong unit: glucose in mmol/L)."""
+    from twinfalsify.unitscreen import against_typical
+
+    medians = trajectories[list(FEATURES)].median()
+    return [m for f in FEATURES for m in [against_typical(f, float(medians[f]))] if m]
 
 
 def to_table(trajectories: pd.DataFrame, subject_id: pd.Series | None = None) -> pd.DataFrame:
@@ -352,6 +372,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.cmd == "check":
         traj = read_table(args.path)
+        suspects = unit_suspects(traj)
+        for message in suspects:
+            print(f"{args.path}: unit? {message}")
+        if suspects:
+            print(f"{args.path}: the rows follow the contract, but {len(suspects)} "
+                  f"feature(s) look like another unit than the contract's (above)")
+            return 1
         print(f"{args.path}: ok, {traj[STAY_ID].nunique()} stays, {len(traj)} rows")
         return 0
     from twinfalsify.sources.synthetic import generate

@@ -1,0 +1,147 @@
+"""One hypothesis in clinical words: who, under which doses, what, and what each test said.
+
+    python -m twinfalsify.explain results/<study> HYP_ID [--twin NAME]
+
+prints the patient subgroup (sex, age quartile and the outcome above or below its D0 median
+at each hour, with the numbers and units behind each bin), the action sequence as doses
+(the D0 median dose of each bin the twin was given, with the bin's range), the outcome and
+hour, the bounds [y_lo, y_up] the outcomes are clipped to, and per twin the twin's mean
+against the data's bounds with n and n_hat and every method's p-value and decision per side.
+It reads only what a study wrote: design/hypotheses.parquet, design/bins.json,
+design/actions.json and twins/<twin>/results.parquet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, ActionBins, StateBins
+from twinfalsify.io import read_json, read_parquet
+from twinfalsify.schema import FEATURE_BY_NAME, ContractError
+
+QUARTILES = ("1st", "2nd", "3rd", "4th")
+
+
+def _num(v: float) -> str:
+    return f"{v:.4g}"
+
+
+def dose_bin_range(edges: Sequence[float], k: int) -> str:
+    """The dose range of bin k (0 = none, 1-4 = quartiles of the non-zero D0 doses)."""
+    if k == 0:
+        return "none"
+    lo = 0.0 if k == 1 else edges[k - 2]
+    if k == 4:
+        return f"> {_num(lo)}"
+    return f"{'> 0' if k == 1 else '> ' + _num(lo)} to {_num(edges[k - 1])}"
+
+
+def doses_in_words(codes: Sequence[int], actions: ActionBins) -> list[str]:
+    """One line per hour: the doses the twin was given and the bins they stand for."""
+    out = []
+    for h, a in enumerate(codes, start=1):
+        iv, vaso = int(a) // N_DOSE_BINS, int(a) % N_DOSE_BINS
+        out.append(f"hour {h}: IV fluid {_num(actions.iv_medians[iv])} mL/h (bin {iv}: "
+                   f"{dose_bin_range(actions.iv_edges, iv)}), vasopressor "
+                   f"{_num(actions.vaso_medians[vaso])} ug/kg/min (bin {vaso}: "
+                   f"{dose_bin_range(actions.vaso_edges, vaso)})")
+    return out
+
+
+def subgroup_in_words(codes: Sequence[int], outcome: str, states: StateBins) -> list[str]:
+    """The B-sets B_0..B_t as patients: sex, age quartile, outcome vs the D0 median."""
+    if all(int(c) == WHOLE_SPACE for c in codes):
+        return ["every patient (Manski bounds: no subgroup)"]
+    base = int(codes[0]) - int(codes[0]) % 2
+    sex, age_q = base // 8, (base % 8) // 2
+    edges = states.age_edges
+    # quartile by searchsorted(..., side="right"): [e_{q-1}, e_q)
+    age = (f"age < {_num(edges[0])}" if age_q == 0 else f"age >= {_num(edges[-1])}"
+           if age_q == 3 else f"age {_num(edges[age_q - 1])} to < {_num(edges[age_q])}")
+    unit = FEATURE_BY_NAME[outcome].unit
+    lines = [f"{'female' if sex else 'male'}, {age} years ({QUARTILES[age_q]} age quartile "
+             "of D0)"]
+    for s, c in enumerate(codes):
+        med = states.medians[outcome][s]
+        rel = "above" if int(c) % 2 else "at or below"
+        lines.append(f"{outcome} at hour {s} {rel} {_num(med)} {unit} (the D0 median at "
+                     f"hour {s})")
+    return lines
+
+
+def _twins(results_dir: Path, twin: str | None) -> list[str]:
+    found = sorted(p.name for p in (results_dir / "twins").glob("*")
+                   if (p / "results.parquet").is_file())
+    if twin is not None:
+        if twin not in found:
+            raise ContractError(f"{results_dir}/twins: no twin {twin!r} with results (found "
+                                f"{', '.join(found) or 'none'})")
+        return [twin]
+    if not found:
+        raise ContractError(f"{results_dir}/twins: no twin has results.parquet yet (run the "
+                            "study first)")
+    return found
+
+
+def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None) -> str:
+    """The text ``python -m twinfalsify.explain`` prints."""
+    r = Path(results_dir)
+    hyps = read_parquet(r / "design" / "hypotheses.parquet", "hypotheses")
+    row = hyps[hyps["hyp_id"] == hyp_id]
+    if row.empty:
+        raise ContractError(f"{r}/design/hypotheses.parquet: no hypothesis {hyp_id} (ids "
+                            f"{int(hyps['hyp_id'].min())}..{int(hyps['hyp_id'].max())})")
+    h = row.iloc[0]
+    states = StateBins.from_json(read_json(r / "design" / "bins.json"))
+    actions = ActionBins.from_json(read_json(r / "design" / "actions.json"))
+    outcome, t, unit = str(h["outcome"]), int(h["t"]), FEATURE_BY_NAME[str(h["outcome"])].unit
+    lines = [f"hypothesis {hyp_id} ({h['kind']}): the mean {outcome} at hour {t}, outcomes "
+             f"clipped to [y_lo, y_up] = [{_num(h['y_lo'])}, {_num(h['y_up'])}] {unit}",
+             "patients:"]
+    lines += [f"  {x}" for x in subgroup_in_words(list(h["bins"]), outcome, states)]
+    lines.append("doses (each the D0 median of its bin):")
+    lines += [f"  {x}" for x in doses_in_words(list(h["actions"]), actions)]
+    for name in _twins(r, twin):
+        res = read_parquet(r / "twins" / name / "results.parquet", "results")
+        mine = res[res["hyp_id"] == hyp_id]
+        if mine.empty:
+            lines.append(f"twin {name}: not tested (no results row)")
+            continue
+        first = mine.iloc[0]
+        mean = first["q_twin_hat"]
+        lo, up = first["q_lo_hat"], first["q_up_hat"]
+        where = ("below the lower bound" if mean < lo else "above the upper bound"
+                 if mean > up else "inside the bounds") if np.isfinite(mean) else "no twin runs"
+        lines.append(f"twin {name}: mean (clipped) {_num(mean)} {unit} from n_hat = "
+                     f"{int(first['nhat'])} runs; data bounds [{_num(lo)}, {_num(up)}] "
+                     f"{unit} from n = "
+                     f"{int(first['n'])} stays ({int(first['n_follow'])} followed these "
+                     f"doses): {where}")
+        for m in mine.sort_values(["method", "side"]).itertuples():
+            verdict = "REJECTED" if m.rejected else "not rejected"
+            lines.append(f"  {m.method:<10} H_{m.side}: p = {m.p_value:.3g}, {verdict} "
+                         f"(alpha {m.alpha:g}, {m.correction})")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m twinfalsify.explain",
+                                     description="Explain one hypothesis of a study.")
+    parser.add_argument("results", help="the study's results folder (results/<study>)")
+    parser.add_argument("hyp_id", type=int, help="the hypothesis id (results' hyp_id)")
+    parser.add_argument("--twin", help="only this twin (default: every twin with results)")
+    args = parser.parse_args(argv)
+    print(explain(args.results, args.hyp_id, args.twin))
+    return 0
+
+
+if __name__ == "__main__":
+    from twinfalsify.io import cli_main
+
+    sys.exit(cli_main(lambda: main(), "twinfalsify.explain"))
+

@@ -1,0 +1,95 @@
+"""python -m twinfalsify.explain: one hypothesis in clinical words, with every test's verdict."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from study_helpers import build_study
+
+from twinfalsify import bounds
+from twinfalsify.design import StateBins
+from twinfalsify.explain import explain, subgroup_in_words
+from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.runs import plan as tp
+from twinfalsify.runs.registry import make_twin
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def study_dir(tmp_path_factory) -> tuple[Path, pd.DataFrame, object]:
+    """A results folder as a study writes it: one biased twin (HR + 25 /min)."""
+    study = build_study(800, seed=5, d0_fraction=0.3, min_support=5, runs=100)
+    r = tmp_path_factory.mktemp("explain") / "results" / "s"
+    (r / "design").mkdir(parents=True)
+    (r / "twins" / "b").mkdir(parents=True)
+    study.hyps.to_parquet(r / "design" / "hypotheses.parquet")
+    (r / "design" / "bins.json").write_text(json.dumps(study.states.to_json()))
+    (r / "design" / "actions.json").write_text(json.dumps(study.actions.to_json()))
+    ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}}
+    twin = make_twin("b", {"kind": "biased", "shift": {"HR": 25.0}}, ctx)
+    runs = pd.concat([tp.run_shard(twin, study.plan, k, study.x0, study.actions,
+                                   log=io.StringIO()) for k in range(len(study.plan.shards))],
+                     ignore_index=True)
+    nodes = tp.load_nodes(runs, study.plan, study.x0)
+    values, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
+    samples = bounds.hypothesis_samples(study.hyps, study.obs, values)
+    res = run_tests(study.hyps, samples, n_failed,
+                    make_methods({"hoeffding": {}, "betting": {}}, 0))
+    res.to_parquet(r / "twins" / "b" / "results.parquet")
+    return r, res, study
+
+
+def test_a_rejection_is_explained_with_its_numbers(study_dir):
+    r, res, study = study_dir
+    hit = res[res["rejected"]].sort_values("p_value").iloc[0]
+    text = explain(r, int(hit["hyp_id"]))
+    h = study.hyps.set_index("hyp_id").loc[int(hit["hyp_id"])]
+    assert text.startswith(f"hypothesis {hit['hyp_id']} ({hit['kind']}): the mean {hit['outcome']} "
+                           f"at hour {hit['t']}")
+    # the doses are those the twin was given: the bins' D0 medians
+    doses = study.actions.doses(list(h["actions"]))
+    for hour, (iv, vaso) in enumerate(doses, start=1):
+        assert f"hour {hour}: IV fluid {iv:.4g} mL/h" in text
+        assert f"vasopressor {vaso:.4g} ug/kg/min" in text
+    assert f"from n_hat = {hit['nhat']} runs" in text and f"from n = {hit['n']} stays" in text
+    # every method and side with its p and decision
+    mine = res[res["hyp_id"] == hit["hyp_id"]]
+    assert text.count(" H_lo: p = ") + text.count(" H_up: p = ") == len(mine)
+    assert text.count("REJECTED") == int(mine["rejected"].sum())
+    for m in mine.itertuples():
+        assert f"H_{m.side}: p = {m.p_value:.3g}" in text
+    # HR + 25: a rejected HR hypothesis has the twin's mean above the data's bounds
+    if hit["outcome"] == "HR":
+        assert "above the upper bound" in text
+
+
+def test_the_subgroup_reads_as_patients():
+    states = StateBins((50.0, 64.0, 75.0), {"HR": (90.0, 88.5, 87.0, 86.0, 85.0)})
+    # female (8), 3rd age quartile (2 * 2), HR above the median at hour 0, below at hour 1
+    lines = subgroup_in_words([8 + 4 + 1, 8 + 4 + 0], "HR", states)
+    assert lines == ["female, age 64 to < 75 years (3rd age quartile of D0)",
+                     "HR at hour 0 above 90 /min (the D0 median at hour 0)",
+                     "HR at hour 1 at or below 88.5 /min (the D0 median at hour 1)"]
+    assert subgroup_in_words([-1, -1], "HR", states) == [
+        "every patient (Manski bounds: no subgroup)"]
+
+
+def test_the_command_line_names_a_missing_hypothesis(study_dir):
+    r, res, _ = study_dir
+    env = {"PYTHONPATH": str(ROOT / "src")}
+    ok = subprocess.run([sys.executable, "-m", "twinfalsify.explain", str(r),
+                         str(int(res["hyp_id"].iloc[0]))], capture_output=True, text=True,
+                        env=env, timeout=120)
+    assert ok.returncode == 0 and ok.stdout.startswith("hypothesis "), ok.stderr
+    bad = subprocess.run([sys.executable, "-m", "twinfalsify.explain", str(r), "999999"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().startswith(f"twinfalsify.explain: error: {r}/design/"
+                                         "hypotheses.parquet: no hypothesis 999999")
