@@ -16,8 +16,8 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 def test_data_tables_have_meaning_and_version():
     versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "2",
-                "sample_and_hold.csv": "1", "vasopressors.csv": "1", "fluids.csv": "1",
-                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "1",
+                "sample_and_hold.csv": "1", "vasopressors.csv": "2", "fluids.csv": "1",
+                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "2",
                 "withdrawal.csv": "1", "heights.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
