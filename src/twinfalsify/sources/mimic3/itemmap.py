@@ -99,6 +99,8 @@ ITEM_LISTS: tuple[ItemList, ...] = (
               227489)),
     ItemList("cultures (chart items)", "cultures.csv", None, "CHARTEVENTS",
              "AI-Clinician culture query"),
+    ItemList("blood-gas specimen", "specimens.csv", None, "LABEVENTS",
+             f"{MC4}measurement/bg.sql (52033); MIMIC-III 50800"),
 )
 
 # Items only MIMIC-IV charts, with the first release that has them and the rows counted where
@@ -107,9 +109,11 @@ MIMIC4_ONLY: dict[int, tuple[str, str]] = {
     229630: ("MIMIC-IV v2.0", "phenylephrine; 35,766 infusion rows in v2.0"),
     229632: ("MIMIC-IV v2.0", "phenylephrine; 7,347 infusion rows in v2.0"),
     229631: ("MIMIC-IV v3.1", "phenylephrine"),
+    52033: ("MIMIC-IV v2.0", "blood-gas specimen type (MIMIC-III: 50800)"),
 }
-# MIMIC-III-only items besides the CareVue ids (< 220000, not labs): none yet.
-MIMIC3_ONLY: frozenset[int] = frozenset()
+# MIMIC-III-only items besides the CareVue ids (< 220000, not labs): its blood-gas specimen
+# item (MIMIC-IV charts the specimen type as 52033).
+MIMIC3_ONLY: frozenset[int] = frozenset({50800})
 
 
 def all_itemids() -> set[int]:
