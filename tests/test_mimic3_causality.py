@@ -17,7 +17,7 @@ import pytest
 from conftest import shared_dir
 
 from twinfalsify import schema
-from twinfalsify.sources.mimic3 import extract_mimic3
+from twinfalsify.sources.mimic3 import extract_mimic3, itemmap
 from twinfalsify.sources.mimic3.tables import connect
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
@@ -32,15 +32,22 @@ def perturb_after(src: Path, dst: Path, t0: pd.Series, t: int, seed: int = 0,
     VALUE, where numeric) of every CHARTEVENTS row charted at or after t0 + (t + 1) h of its
     stay, and of every LABEVENTS row charted at or after that time for every stay of its
     admission, by 1 + U(-scale, scale). Stays not in ``t0`` (not in the cohort): all their
-    rows are perturbed. Returns the number of perturbed rows."""
+    rows are perturbed. Weights (read across the patient's stays: an hour without one takes
+    the patient's own last earlier weight) are perturbed from the latest cut of the
+    patient's cohort stays on, all of them for a patient without one. Returns the number of
+    perturbed rows."""
     con = connect(src)
     rng = np.random.default_rng(seed)
     dst.mkdir(parents=True, exist_ok=True)
     stays = con.execute("SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, "
-                        "CAST(HADM_ID AS BIGINT) AS hadm_id FROM ICUSTAYS").df()
+                        "CAST(HADM_ID AS BIGINT) AS hadm_id, "
+                        "CAST(SUBJECT_ID AS BIGINT) AS subject_id FROM ICUSTAYS").df()
     cut = (t0 + (t + 1) * pd.Timedelta(hours=1)).rename("cut")
-    stays["cut"] = stays["icustay_id"].map(cut)  # NaT: not in the cohort -> -inf
+    stays["cut"] = stays["icustay_id"].map(cut)  # NaT: not in the cohort
+    subj_cut = stays.dropna(subset=["cut"]).groupby("subject_id")["cut"].max()
     stays["cut"] = stays["cut"].fillna(EARLY)
+    weight_items = set(itemmap.ITEM_LISTS[[x.name for x in itemmap.ITEM_LISTS].index(
+        "weight")].itemids())
     hadm_cut = stays.groupby("hadm_id")["cut"].max()  # later than the cut of every stay
     n = 0
     from twinfalsify.sources.mimic3.tables import REQUIRED_COLUMNS
@@ -52,6 +59,9 @@ def perturb_after(src: Path, dst: Path, t0: pd.Series, t: int, seed: int = 0,
             if table == "CHARTEVENTS":
                 c = pd.to_numeric(df["ICUSTAY_ID"], errors="coerce").map(
                     stays.set_index("icustay_id")["cut"])
+                wt = pd.to_numeric(df["ITEMID"], errors="coerce").isin(weight_items)
+                cs = pd.to_numeric(df["SUBJECT_ID"], errors="coerce").map(subj_cut)
+                c = c.where(~wt, cs)
             else:
                 c = pd.to_numeric(df["HADM_ID"], errors="coerce").map(hadm_cut)
             later = (time >= c.fillna(EARLY)).to_numpy()

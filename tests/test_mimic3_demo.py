@@ -27,12 +27,12 @@ pytestmark = [pytest.mark.slow,
                                  reason=f"MIMIC-III demo not present at {DEMO}")]
 # documented in docs/how-to/mimic3.md (CONSORT of the demo under each anchor)
 COUNTS = {
-    "intime": [136, 135, 86, 73, 73, 71, 68, 68, 68, 66, 21, 21, 21],
-    "first_vitals": [136, 135, 86, 73, 73, 71, 68, 66, 66, 64, 62, 62, 62],
+    "intime": [136, 135, 85, 72, 72, 70, 67, 67, 67, 65, 21, 21, 21],
+    "first_vitals": [136, 135, 85, 72, 72, 70, 67, 65, 65, 63, 61, 61, 61],
 }
 COUNTS_AI_CLINICIAN = {
-    "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 21, 21, 21],
-    "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 60, 60, 60],
+    "intime": [136, 135, 85, 70, 70, 68, 65, 65, 65, 63, 21, 21, 21],
+    "first_vitals": [136, 135, 85, 70, 70, 68, 65, 63, 63, 61, 59, 59, 59],
 }
 
 
@@ -89,3 +89,62 @@ def test_ai_clinician_preset(anchor):
     res = extract_mimic3(DEMO, anchor=anchor, options=PRESETS["ai_clinician"])
     assert res.consort["n_stays"].tolist() == COUNTS_AI_CLINICIAN[anchor]
     schema.validate_trajectories(res.trajectories)
+
+
+@pytest.fixture(scope="module")
+def preset():
+    return extract_mimic3(DEMO, anchor="first_vitals", options=PRESETS["ai_clinician"])
+
+
+def test_sofa_components_held_only_for_their_hold_time(preset, demo):
+    a = preset.stays.set_index(schema.STAY_ID)
+    # 239935: a bilirubin of 36 h before scored liver 1 when carried without a limit (10);
+    # held 28 h (AI-Clinician's Total_bili hold) it is gone: 9
+    assert a.loc[239935, "max_sofa"] == 9
+    # 273347: a PaO2 carried 20 h and divided by a later FiO2 scored respiration 3 (8);
+    # held 8 h: 7, without respiration
+    assert a.loc[273347, "max_sofa"] == 7
+    assert "respiration" not in a.loc[273347, "sofa_organs"]
+    # the withdrawal rule still reads the last block with every component carried:
+    # 228977 stays excluded there
+    assert a.loc[228977, "excluded_at"] == "not_withdrawn"
+    p = demo["first_vitals"].stays.set_index(schema.STAY_ID)
+    assert p.loc[239935, "max_sofa"] == 9 and p.loc[273347, "max_sofa"] == 5
+
+
+def test_own_earlier_weight_before_a_donor(demo):
+    res = demo["first_vitals"]
+    a = res.stays.set_index(schema.STAY_ID)
+    w = res.trajectories.set_index([schema.STAY_ID, "t"])["weight"]
+    # 222779: its 234 "kg" charts are deleted (BMI 86 at 165 cm); the patient weighed 96.6 kg
+    # 16.5 days before (stay 261764): that, not another patient's 141.5 kg (BMI 52)
+    assert w.loc[222779].to_numpy() == pytest.approx([96.6] * 5, abs=1e-3)
+    assert a.loc[222779, "n_own_weight_hours"] == 5
+    assert a.loc[222779, "n_imputed_weight_hours"] == 0
+    # 285750: its own 64.9 kg, not a donor's 81.1 kg
+    assert w.loc[285750].to_numpy() == pytest.approx([64.9] * 5, abs=0.05)
+    # 210164 keeps its 263 kg: the 157 cm that would make it implausible is charted two
+    # months later, in another stay
+    assert a.loc[210164, "n_weight_implausible"] == 0
+    assert not a["weight_imputed_implausible"].any()
+
+
+def test_specimens_units_and_semantics(demo, preset):
+    res = demo["first_vitals"]
+    a = res.stays.set_index(schema.STAY_ID)
+    mbp = res.trajectories.set_index([schema.STAY_ID, "t"])["MeanBP"]
+    # 221684: a MAP of 142 charted alone above the systolic 104 charted an hour before:
+    # deleted, hour 2 is 60.7 (completed from 94 / 44 at 18:03), not 101.3
+    assert a.loc[221684, "n_map_outside_range"] == 1
+    assert mbp.loc[(221684, 2)] == pytest.approx(60.67, abs=0.01)
+    # 217992: MAPs of 3 mmHg (a transducer zeroed) below the diastolic: hour 0 is 65.2, not 34.1
+    assert a.loc[217992, "n_map_outside_range"] == 2
+    assert mbp.loc[(217992, 0)] == pytest.approx(65.2, abs=0.05)
+    # venous and mixed-venous blood gases: their PaO2 / PaCO2 / pH are not arterial
+    assert a["n_venous_gas_rows"].sum() == 33
+    # 290513's only culture is an MRSA screen: no suspected infection
+    assert a.loc[290513, "n_screen_cultures"] == 1
+    assert a.loc[290513, "infection_status"] != "onset"
+    # GU irrigant in (227488) is subtracted from the urine output read by sofa: ai_clinician
+    p = preset.stays.set_index(schema.STAY_ID)
+    assert p["n_urine_irrigant_rows"].sum() == 97 and a["n_urine_irrigant_rows"].sum() == 0

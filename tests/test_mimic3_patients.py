@@ -16,7 +16,7 @@ from twinfalsify.sources.mimic3.options import Mimic3Options
 
 FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3-patients"
 MAIN_FIX = Path(__file__).resolve().parent / "fixtures" / "mimic3"
-P = {n: 300000 + n for n in range(1, 14)}
+P = {n: 300000 + n for n in range(1, 18)}
 
 
 @pytest.fixture(scope="module")
@@ -36,10 +36,12 @@ def _audit(res) -> pd.DataFrame:
 def test_consort(cohort):
     c = cohort.consort
     assert list(c["step"]) == list(STEPS)
-    # 13 stays; P13 has no culture; every other stay is kept (P4 and P5 only since the
-    # completed BP is held and SOFA carries); stays_per_patient: all removes nothing
-    assert c["n_stays"].tolist() == [13, 13, 12, 12, 12, 12, 12, 12, 12, 12, 12, 12, 12]
-    assert set(cohort.trajectories[schema.STAY_ID]) == set(P.values()) - {P[13]}
+    # 14 stays; P13 has no culture; P14 scores SOFA 1 (held components); every other stay is
+    # kept (P4 and P5 only since the completed BP is held and SOFA carries);
+    # stays_per_patient: all removes nothing
+    # P15's imputed weight is implausible for its height (fails imputable)
+    assert c["n_stays"].tolist() == [17, 17, 16, 15, 15, 15, 15, 15, 15, 15, 15, 15, 14]
+    assert set(cohort.trajectories[schema.STAY_ID]) == set(P.values()) - {P[13], P[14], P[15]}
 
 
 def test_bp_is_completed_within_a_charting_time_only(cohort):
@@ -70,6 +72,14 @@ def test_max_sofa_carries_components_between_blocks(cohort):
     assert a["in_cohort"]
 
 
+def test_sofa_components_are_held_only_for_their_hold_time(cohort):
+    # P14: bilirubin 1.5 (liver 1) 36 h of blocks before platelets 120 (coagulation 1); the
+    # bilirubin is held 28 h (AI-Clinician's Total_bili hold), so no block scores both
+    # (carried without a limit: max SOFA 2, in cohort)
+    a = _audit(cohort).loc[P[14]]
+    assert a["max_sofa"] == 1 and a["excluded_at"] == "sofa_ge_2"
+
+
 def test_sofa_carry_none_scores_each_block_alone():
     res = extract_mimic3(FIX, anchor="first_vitals", options=Mimic3Options(sofa_carry="none"))
     a = _audit(res).loc[P[5]]
@@ -87,17 +97,27 @@ def test_no_donor_from_the_same_patient(cohort):
 
 def test_weight_implausible_for_the_patients_height_is_deleted(cohort):
     # P9 charts 234 in a kg item at INTIME + 0:10; the patient's height, 65 in, was charted
-    # in an earlier stay (P8): BMI 86 -> deleted, hours 0..4 imputed (the 96.6 kg of 16:36
-    # may not be used before then), never 234
+    # in an earlier stay (P8): BMI 86 -> deleted. Hours 0..4 take the patient's own 96.6 kg
+    # charted in P8 20 days before (before: another patient's weight was imputed; the
+    # 96.6 kg of 16:36 in P9 itself may not be used before then), never 234
     s = _stay(cohort, P[9])
-    assert (s["weight"] < 150).all()
-    assert s["weight"].nunique() == 1
+    assert (s["weight"] == 96.6).all()
     a = _audit(cohort).loc[P[9]]
-    assert a["n_weight_implausible"] == 1 and a["n_imputed_weight_hours"] == 5
+    assert a["n_weight_implausible"] == 1 and a["n_imputed_weight_hours"] == 0
+    assert a["n_own_weight_hours"] == 5 and not a["weight_imputed_implausible"]
     assert a["n_imputed_lab_cells"] == 0
     # the patient's other stay keeps its plausible weight, uncounted
     assert (_stay(cohort, P[8])["weight"] == 96.6).all()
     assert _audit(cohort).loc[P[8], "n_weight_implausible"] == 0
+
+
+def test_an_imputed_weight_must_be_plausible_for_the_height(cohort):
+    # P15: height 120 cm charted in hour 0, no weight of its own; its nearest donor (P12)
+    # weighs 120 kg: BMI 83 > 80, deleted as a charted 120 kg would be; the stay fails
+    # imputable (before: 120 kg imputed, in cohort)
+    a = _audit(cohort).loc[P[15]]
+    assert a["weight_imputed_implausible"] and a["excluded_at"] == "imputable"
+    assert not a["in_cohort"] and a["n_own_weight_hours"] == 0
 
 
 def test_weight_is_imputed_once_per_stay(cohort):
@@ -113,7 +133,7 @@ def test_stays_per_patient_first():
                          options=Mimic3Options(stays_per_patient="first"))
     c = res.consort.set_index("step")
     # P7 and P9 are their patients' second stays
-    assert c.loc["stays_per_patient", "n_stays"] == 10
+    assert c.loc["stays_per_patient", "n_stays"] == 13
     assert c.loc["stays_per_patient", "n_excluded"] == 2
     ids = set(res.trajectories[schema.STAY_ID])
     assert P[6] in ids and P[8] in ids and not {P[7], P[9]} & ids
@@ -143,3 +163,26 @@ def test_audit_splits_the_infection_step(cohort):
     assert w.loc[200009].tolist() == [True, 10, 0.5, 0.0, 4.0, 0.0]
     assert main.loc[200001, "died_within_90d"] == False  # noqa: E712
     assert pd.isna(main.loc[200001, "max_block_sofa"])  # not a candidate: not computed
+
+
+def test_map_outside_systolic_and_norepinephrine_units(cohort):
+    # P16: MAP 142 charted alone at 2:10, above the systolic 110 of 1:30: deleted, so hour 2
+    # is the 77 of 2:30 (before: (142 + 77) / 2 = 109.5). Norepinephrine 0.0001 mg/kg/min over
+    # hours 1-2 is 0.1 ug/kg/min (before: dropped, 0); a row in mL/hr is counted
+    s = _stay(cohort, P[16])
+    assert s.loc[2, "MeanBP"] == 77.0
+    assert s["vasopressor"].tolist() == pytest.approx([0.0, 0.1, 0.1, 0.0, 0.0])
+    a = _audit(cohort).loc[P[16]]
+    assert a["n_map_outside_range"] == 1 and a["n_vaso_rows_unit_unknown"] == 1
+    assert _audit(cohort).loc[P[1], "n_map_outside_range"] == 0
+
+
+def test_labs_and_cultures_without_admission_are_linked_by_time(cohort):
+    # P17: its culture and its sodium have no HADM_ID but lie within its admission: linked
+    # (before: the culture was dropped, no suspected infection, the stay excluded)
+    a = _audit(cohort).loc[P[17]]
+    assert a["n_cultures_linked_by_time"] == 1 and a["n_labs_linked_by_time"] == 1
+    assert a["infection_status"] == "onset" and a["in_cohort"]
+    assert _stay(cohort, P[17]).loc[0, "Sodium"] == 150.0
+    assert _audit(cohort).loc[P[1], ["n_cultures_linked_by_time",
+                                     "n_labs_linked_by_time"]].tolist() == [0, 0]

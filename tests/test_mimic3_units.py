@@ -16,9 +16,10 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 def test_data_tables_have_meaning_and_version():
     versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "2",
-                "sample_and_hold.csv": "1", "vasopressors.csv": "1", "fluids.csv": "1",
-                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "1",
-                "withdrawal.csv": "1", "heights.csv": "1"}
+                "sample_and_hold.csv": "2", "vasopressors.csv": "3", "fluids.csv": "1",
+                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "3",
+                "withdrawal.csv": "1", "heights.csv": "1",
+                "specimens.csv": "1", "screens.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name
@@ -275,3 +276,27 @@ def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
         slow = hourly._knn_impute_direct(x, groups, times, chunk=chunk)
         np.testing.assert_array_equal(fast, slow)
         assert np.isnan(fast[7]).all()
+
+
+def test_norepinephrine_in_mg_per_kg_min_is_converted():
+    # MIMIC-IV charts a few norepinephrine rates in mg/kg/min; before they were dropped (NaN)
+    ev = pd.DataFrame({"itemid": [221906, 221906, 221906], "rate": [0.1, 0.0001, 5.0],
+                       "rateuom": ["mcg/kg/min", "mg/kg/min", "mL/hr"]})
+    ne = doses.norepinephrine_equivalent(ev, "mv").to_numpy()
+    np.testing.assert_allclose(ne[:2], [0.1, 0.1])
+    assert np.isnan(ne[2])  # no rule for mL/hr: counted in the audit table
+
+
+def test_map_outside_diastolic_systolic_is_deleted():
+    t = pd.Timestamp("2150-01-01 10:00")
+    m = pd.Timedelta(minutes=1)
+    ev = pd.DataFrame({
+        "icustay_id": 1,
+        "time": [t, t, t, t + 60 * m, t + 66 * m, t + 90 * m, t + 200 * m, t + 400 * m],
+        "feature": ["SysBP", "DiaBP", "MeanBP", "MeanBP", "MeanBP", "MeanBP", "SysBP",
+                    "MeanBP"],
+        "value": [104.0, 60.0, 75.0, 142.0, 3.0, 60.0, 90.0, 95.0]})
+    bad = hourly.map_outside_range(ev)
+    # 142 > the systolic 104 charted before it, 3 < the diastolic 60; 60 and 75 lie within;
+    # the MAP of t + 400 min has a systolic 200 min old (> 2 h) and no diastolic: kept
+    assert bad.tolist() == [False, False, False, True, True, False, False, False]

@@ -107,7 +107,8 @@ def _stays(con, layout: Layout = MIMIC3) -> pd.DataFrame:
                CAST(i.HADM_ID AS BIGINT) AS hadm_id, i.DBSOURCE AS dbsource,
                {_ts('i.INTIME')} AS intime, {_ts('i.OUTTIME')} AS outtime,
                {born}, {_ts('p.DOD')} AS dod, p.GENDER AS gender,
-               TRY_CAST(a.HOSPITAL_EXPIRE_FLAG AS INTEGER) AS hospital_expire_flag
+               TRY_CAST(a.HOSPITAL_EXPIRE_FLAG AS INTEGER) AS hospital_expire_flag,
+               {_ts('a.ADMITTIME')} AS admittime, {_ts('a.DISCHTIME')} AS dischtime
         FROM ICUSTAYS i
         JOIN PATIENTS p ON CAST(i.SUBJECT_ID AS BIGINT) = CAST(p.SUBJECT_ID AS BIGINT)
         LEFT JOIN ADMISSIONS a ON CAST(i.HADM_ID AS BIGINT) = CAST(a.HADM_ID AS BIGINT)
@@ -179,6 +180,26 @@ def _assign_to_stays(events: pd.DataFrame, stays: pd.DataFrame, rule: str = "nea
     return out.astype({"icustay_id": "int64"})
 
 
+def _link_by_time(ev: pd.DataFrame, stays: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
+    """Give each row of ``ev`` (hadm_id or NaN, subject_id, time) without an admission the
+    admission of its patient whose [ADMITTIME, DISCHTIME] holds its time (the earliest such,
+    if admissions overlap). Returns ``ev`` with hadm_id filled and a mask of the rows filled."""
+    ev = ev.reset_index(drop=True)
+    need = ev["hadm_id"].isna() & ev["time"].notna()
+    filled = np.zeros(len(ev), dtype=bool)
+    if not need.any():
+        return ev, filled
+    adm = (stays[["subject_id", "hadm_id", "admittime", "dischtime"]].dropna()
+           .drop_duplicates("hadm_id").sort_values("admittime", kind="stable"))
+    q = ev.loc[need, ["subject_id", "time"]].reset_index()
+    m = q.merge(adm, on="subject_id")
+    m = m[(m["time"] >= m["admittime"]) & (m["time"] <= m["dischtime"])]
+    m = m.drop_duplicates("index", keep="first")
+    ev.loc[m["index"].to_numpy(), "hadm_id"] = m["hadm_id"].to_numpy()
+    filled[m["index"].to_numpy()] = True
+    return ev, filled
+
+
 def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
                         evidence: dict | None = None) -> pd.DataFrame:
     """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
@@ -214,17 +235,34 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
           AND NOT EXISTS (SELECT 1 FROM abx_exc WHERE contains(lower(pr.DRUG), abx_exc.p))
           AND upper(trim(coalesce(pr.ROUTE, ''))) NOT IN (SELECT r FROM abx_routes)
           AND HADM_ID IS NOT NULL AND STARTDATE IS NOT NULL""").df()
-    micro = con.execute(f"""
-        SELECT CAST(HADM_ID AS BIGINT) AS hadm_id, CAST(NULL AS BIGINT) AS icustay_id,
-               coalesce({_ts('CHARTTIME')}, {_ts('CHARTDATE')}) AS time
-        FROM MICROBIOLOGYEVENTS WHERE HADM_ID IS NOT NULL""").df()
+    # surveillance screens (MRSA, VRE, ...) are not cultures for a suspected infection
+    scr = data_table("screens.csv")
+    mcols = {x.upper() for x in con.execute("SELECT * FROM MICROBIOLOGYEVENTS LIMIT 0").df()}
+    conds = [f"upper(trim(coalesce({col}, ''))) IN ("
+             + ", ".join("'" + v.replace("'", "''") + "'" for v in g["value"].str.upper())
+             + ")" for col, g in scr.groupby("column") if col in mcols]
+    screen = " OR ".join(conds) or "FALSE"
+    micro_all = con.execute(f"""
+        SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, CAST(NULL AS BIGINT) AS icustay_id,
+               CAST(SUBJECT_ID AS BIGINT) AS subject_id,
+               coalesce({_ts('CHARTTIME')}, {_ts('CHARTDATE')}) AS time,
+               ({screen}) AS screen
+        FROM MICROBIOLOGYEVENTS""").df()
+    # a culture without HADM_ID (MIMIC-IV: outpatient and ED specimens among them) is linked
+    # by patient and time to the admission whose [ADMITTIME, DISCHTIME] holds it (before:
+    # dropped); one outside every admission stays unlinked
+    micro_all, by_time = _link_by_time(micro_all, stays)
+    micro_all = micro_all.assign(_by_time=by_time).drop(columns="subject_id")
+    micro_all = micro_all[micro_all["hadm_id"].notna()]
+    micro = micro_all[~micro_all["screen"].astype(bool)].drop(columns="screen")
+    screens = micro_all[micro_all["screen"].astype(bool)].drop(columns=["screen", "_by_time"])
     con.register("cult_items", data_table("cultures.csv")[["itemid"]].astype("int64"))
     chart = con.execute(f"""
         SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
                {_ts('CHARTTIME')} AS time
         FROM CHARTEVENTS
         WHERE TRY_CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM cult_items)""").df()
-    cult = pd.concat([micro, chart], ignore_index=True)
+    cult = pd.concat([micro.drop(columns="_by_time"), chart], ignore_index=True)
     cult = cult[cult["time"].notna() & (cult["hadm_id"].notna() | cult["icustay_id"].notna())]
     abx = abx[abx["time"].notna()]
     a = _assign_to_stays(abx, stays, event_stay).drop_duplicates()
@@ -232,6 +270,13 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
     if evidence is not None:
         evidence["antibiotic"] = pd.Index(a["icustay_id"].unique())
         evidence["culture"] = pd.Index(c["icustay_id"].unique())
+        linked = micro[micro["_by_time"].astype(bool)] if "_by_time" in micro else micro[:0]
+        evidence["culture_by_time"] = (
+            _assign_to_stays(linked.drop(columns="_by_time"), stays, event_stay)["icustay_id"]
+            .value_counts() if len(linked) else pd.Series(dtype="int64"))
+        scr_rows = screens[screens["time"].notna()]
+        evidence["screens"] = (_assign_to_stays(scr_rows, stays, event_stay)["icustay_id"]
+                               .value_counts() if len(scr_rows) else pd.Series(dtype="int64"))
     rows = {}
     cgroups = {k: np.sort(v["time"].to_numpy("datetime64[ns]")) for k, v in c.groupby("icustay_id")}
     for sid, g in a.groupby("icustay_id"):
@@ -267,6 +312,7 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
 # treats such charting as not assessable). gcs_intubated = "not_assessable" drops the GCS
 # total charted at that instant (CNS SOFA then has no value there); "verbal_1" keeps it.
 # The items are tables.INTUBATED_VERBAL (staging keeps them too).
+BLOOD_GAS = ("paO2", "paCO2", "Arterial_pH")  # arterial only: specimens.csv
 MEASURED_DIASTOLIC = (220051, 220180)  # MetaVision ABPd / NBPd: bp_items = "measured" only
 # GCS from RASS where no GCS is charted (AI-Clinician, after Wesley et al., JAMA 2003):
 # RASS >= 0 -> 15, -1 -> 14, -2 -> 12, -3 -> 11, -4 -> 6, -5 -> 3
@@ -299,20 +345,16 @@ def _heights(con, subjects) -> pd.DataFrame:
     return h[["subject_id", "time", "height_cm"]].sort_values("time", kind="stable")
 
 
-def implausible_weight(con, stays: pd.DataFrame, ev: pd.DataFrame) -> np.ndarray:
-    """True for each weight row of ``ev`` (icustay_id, time, feature, value in kg) whose BMI
-    with the patient's last height charted at or before it (``_heights``, any of the
-    patient's ICU stays, so never a later one) is outside outlier_limits.csv ``bmi``.
-    Weights without a height known by then pass (the kg outlier limits still apply): e.g.
-    234 'kg' (pounds in a kg item) at a height of 165 cm is BMI 86, deleted."""
-    out = np.zeros(len(ev), dtype=bool)
-    w = ev["feature"].to_numpy() == "weight"
-    if not w.any():
+def _bmi_implausible(con, subject: np.ndarray, time: np.ndarray, kg: np.ndarray) -> np.ndarray:
+    """True where weight ``kg`` of patient ``subject`` at ``time`` has a BMI outside
+    outlier_limits.csv ``bmi`` with the patient's last height charted at or before ``time``
+    (``_heights``; never a later one); False where no height is known by then."""
+    out = np.zeros(len(kg), dtype=bool)
+    if not len(kg):
         return out
-    q = pd.DataFrame({"row": np.flatnonzero(w), "time": ev["time"].to_numpy()[w],
-                      "value": ev["value"].to_numpy(float)[w],
-                      "subject_id": stays["subject_id"].reindex(
-                          ev["icustay_id"].to_numpy()[w]).to_numpy("int64")})
+    q = pd.DataFrame({"row": np.arange(len(kg)), "time": pd.to_datetime(time),
+                      "value": np.asarray(kg, float),
+                      "subject_id": np.asarray(subject, "int64")})
     h = _heights(con, q["subject_id"].unique())
     if h.empty:
         return out
@@ -324,21 +366,101 @@ def implausible_weight(con, stays: pd.DataFrame, ev: pd.DataFrame) -> np.ndarray
     return out
 
 
+def patient_weights(con, stays: pd.DataFrame, subjects) -> pd.DataFrame:
+    """Every weight charted for ``subjects`` (any ICU stay, any time; items.csv ``weight``),
+    in kg, outliers and weights implausible for the patient's height deleted, values of one
+    instant averaged: subject_id, time, weight."""
+    items = hourly.item_map()
+    items = items[(items["feature"] == "weight") & (items["source"] == "chartevents")]
+    con.register("wt_items", items[["itemid"]])
+    con.register("wt_subj", pd.DataFrame({"subject_id": np.asarray(subjects, "int64")}))
+    w = con.execute(f"""
+        SELECT CAST(c.SUBJECT_ID AS BIGINT) AS icustay_id, {_ts('c.CHARTTIME')} AS time,
+               CAST(c.ITEMID AS BIGINT) AS itemid, 'chartevents' AS source,
+               TRY_CAST(c.VALUENUM AS DOUBLE) AS value
+        FROM CHARTEVENTS c
+        WHERE CAST(c.ITEMID AS BIGINT) IN (SELECT itemid FROM wt_items)
+          AND CAST(c.SUBJECT_ID AS BIGINT) IN (SELECT subject_id FROM wt_subj)
+          AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0""").df()
+    w = hourly.delete_outliers(hourly.convert_values(w.dropna(subset=["time", "value"])))
+    w = w.rename(columns={"icustay_id": "subject_id"})
+    bad = _bmi_implausible(con, w["subject_id"].to_numpy(), w["time"].to_numpy(),
+                           w["value"].to_numpy(float))
+    w = w[~bad]
+    return (w.groupby(["subject_id", "time"], as_index=False)["value"].mean()
+            .rename(columns={"value": "weight"}))
+
+
+def own_earlier_weight(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series
+                       ) -> pd.Series:
+    """For each (icustay_id, t) of ``held`` without a weight: the median of the patient's
+    last three weights (``patient_weights``, each instant averaged) charted strictly before
+    the hour's start t0 + t h, in this stay or an earlier one, however long before (a body
+    weight changes slowly; the patient's own is a better estimate than another patient's).
+    The median of three, not the last value, so that one mis-charted weight is not carried
+    for months: 210164 charts 64.6 kg, then 263.2 kg the next day (no height known by then
+    to reject it); its patient's next stay, 281609, starts from 64.6 kg, not 263.2.
+    Returns the filled cells only."""
+    miss = held.index[held["weight"].isna().to_numpy()]
+    if not len(miss):
+        return pd.Series(dtype=float, name="weight")
+    k = miss.to_frame(index=False)
+    k["start"] = t0.reindex(k["icustay_id"]).to_numpy() + k["t"].to_numpy() * HOUR
+    k["subject_id"] = stays["subject_id"].reindex(k["icustay_id"]).to_numpy("int64")
+    w = patient_weights(con, stays, k["subject_id"].unique())
+    if w.empty:
+        return pd.Series(dtype=float, name="weight")
+    w = w.sort_values(["subject_id", "time"], kind="stable")
+    w["weight"] = (w.groupby("subject_id")["weight"]
+                   .transform(lambda s: s.rolling(3, min_periods=1).median()))
+    hit = pd.merge_asof(k.sort_values("start", kind="stable"),
+                        w.rename(columns={"time": "start"}).sort_values("start"),
+                        on="start", by="subject_id", allow_exact_matches=False,
+                        direction="backward").dropna(subset=["weight"])
+    return pd.Series(hit["weight"].to_numpy(), name="weight",
+                     index=pd.MultiIndex.from_frame(hit[["icustay_id", "t"]])).sort_index()
+
+
+def implausible_weight(con, stays: pd.DataFrame, ev: pd.DataFrame) -> np.ndarray:
+    """True for each weight row of ``ev`` (icustay_id, time, feature, value in kg) whose BMI
+    with the patient's last height charted at or before it (``_heights``, any of the
+    patient's ICU stays, so never a later one) is outside outlier_limits.csv ``bmi``.
+    Weights without a height known by then pass (the kg outlier limits still apply): e.g.
+    234 'kg' (pounds in a kg item) at a height of 165 cm is BMI 86, deleted."""
+    out = np.zeros(len(ev), dtype=bool)
+    w = ev["feature"].to_numpy() == "weight"
+    if not w.any():
+        return out
+    subj = stays["subject_id"].reindex(ev["icustay_id"].to_numpy()[w]).to_numpy("int64")
+    out[np.flatnonzero(w)] = _bmi_implausible(con, subj, ev["time"].to_numpy()[w],
+                                              ev["value"].to_numpy(float)[w])
+    return out
+
+
 def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
-            opts: Mimic3Options | None = None, dropped: list | None = None) -> pd.DataFrame:
+            opts: Mimic3Options | None = None, dropped: list | None = None,
+            counts: dict | None = None) -> pd.DataFrame:
     """Charted and lab values of ``features`` for ``stays`` between lo and hi (per stay),
     converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
     only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). Weights implausible
     for the patient's height are deleted (``implausible_weight``; appended to ``dropped``
-    when given). ``opts``: the item switches (bp_items, gcs_intubated, sofa: which GCS
-    items make ``sofa_gcs``)."""
+    when given). A charted mean pressure outside [diastolic, systolic] of the pressures
+    charted at or before it is deleted (``hourly.map_outside_range``; ``counts["map_outside"]``
+    receives the rows per stay when ``counts`` is given). ``opts``: the item switches
+    (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
     opts = opts or Mimic3Options()
+    wanted = tuple(features)
+    if "MeanBP" in wanted:  # the MAP check reads the systolic and diastolic pressures
+        features = (*wanted, *(f for f in ("SysBP", "DiaBP") if f not in wanted))
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
     if opts.bp_items == "ai_clinician":
         items = items[~items["itemid"].isin(MEASURED_DIASTOLIC)]
     win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
                         "hadm_id": stays["hadm_id"].to_numpy(),
+                        "subject_id": stays["subject_id"].to_numpy(),
+                        "admittime": stays["admittime"].to_numpy(),
+                        "dischtime": stays["dischtime"].to_numpy(),
                         "lo": lo.reindex(stays.index).to_numpy(),
                         "hi": hi.reindex(stays.index).to_numpy(),
                         "lab_lo": (stays["intime"] - LAB_WINDOW).to_numpy(),
@@ -353,15 +475,53 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
         WHERE CAST(c.ITEMID AS BIGINT) IN (SELECT itemid FROM items_chart)
           AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0
           AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+    # a lab row without HADM_ID (about 2 % of MIMIC-IV's in-hospital labs) is linked by
+    # patient and time: charted within [ADMITTIME, DISCHTIME] of the stay's admission
     le = con.execute(f"""
         SELECT w.icustay_id, {_ts('l.CHARTTIME')} AS time, CAST(l.ITEMID AS BIGINT) AS itemid,
-               'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value
-        FROM LABEVENTS l JOIN win w ON CAST(l.HADM_ID AS BIGINT) = w.hadm_id
+               'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value,
+               FALSE AS by_time
+        FROM LABEVENTS l JOIN win w ON TRY_CAST(l.HADM_ID AS BIGINT) = w.hadm_id
         WHERE CAST(l.ITEMID AS BIGINT) IN (SELECT itemid FROM items_lab)
           AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lab_lo AND w.lab_hi
+        UNION ALL
+        SELECT w.icustay_id, {_ts('l.CHARTTIME')} AS time, CAST(l.ITEMID AS BIGINT) AS itemid,
+               'labevents' AS source, TRY_CAST(l.VALUENUM AS DOUBLE) AS value,
+               TRUE AS by_time
+        FROM LABEVENTS l JOIN win w ON CAST(l.SUBJECT_ID AS BIGINT) = w.subject_id
+        WHERE TRY_CAST(l.HADM_ID AS BIGINT) IS NULL
+          AND CAST(l.ITEMID AS BIGINT) IN (SELECT itemid FROM items_lab)
+          AND {_ts('l.CHARTTIME')} BETWEEN w.admittime AND w.dischtime
+          AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi
           AND {_ts('l.CHARTTIME')} BETWEEN w.lab_lo AND w.lab_hi""").df()
+    if counts is not None:
+        counts["lab_by_time"] = le.loc[le["by_time"].astype(bool), "icustay_id"].value_counts()
+    le = le.drop(columns="by_time")
+    gas = set(items.loc[(items["source"] == "labevents")
+                        & items["feature"].isin(BLOOD_GAS), "itemid"].astype("int64"))
+    if gas and len(le):
+        # a blood gas drawn from venous blood is not an arterial one (specimens.csv)
+        con.register("spec_rules", data_table("specimens.csv")[["itemid", "value", "arterial"]])
+        ven = con.execute(f"""
+            SELECT DISTINCT w.icustay_id, {_ts('l.CHARTTIME')} AS time
+            FROM LABEVENTS l JOIN win w ON CAST(l.HADM_ID AS BIGINT) = w.hadm_id
+            JOIN spec_rules r ON CAST(l.ITEMID AS BIGINT) = r.itemid
+                             AND upper(trim(l.VALUE)) = r.value
+            WHERE r.arterial = 0
+              AND {_ts('l.CHARTTIME')} BETWEEN w.lo AND w.hi""").df()
+        hit = le["itemid"].isin(gas).to_numpy() & pd.MultiIndex.from_frame(
+            le[["icustay_id", "time"]]).isin(pd.MultiIndex.from_frame(ven)) if len(ven) else (
+            np.zeros(len(le), dtype=bool))
+        if counts is not None:
+            counts["venous_gas"] = le.loc[hit, "icustay_id"].value_counts()
+        le = le[~hit]
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
+    bad_map = hourly.map_outside_range(ev)
+    if counts is not None:
+        counts["map_outside"] = ev.loc[bad_map, "icustay_id"].value_counts()
+    ev = ev[~bad_map & ev["feature"].isin(wanted).to_numpy()].reset_index(drop=True)
     if "weight" in features:
         bad = implausible_weight(con, stays, ev)
         if dropped is not None:
@@ -485,33 +645,63 @@ BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirub
 
 def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
     """Urine output (mL) per 4 h block of [lo, lo + 4 n_blocks h): the sum of OUTPUTEVENTS
-    rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly);
+    rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly), the
+    GU irrigant put in (sign -1) subtracted;
     blocks without a row are missing (AI-Clinician's nansum would make them 0 mL, i.e.
     4 renal points for any block where no urine was charted)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(),
                         "hi": (lo + 4 * n_blocks * HOUR).reindex(ids).to_numpy()})
     con.register("win_uo", win)
-    con.register("uo_items", data_table("urine.csv")[["itemid"]].astype("int64"))
+    con.register("uo_items", data_table("urine.csv")[["itemid", "sign"]].astype("int64"))
+    # sign -1: GU irrigant volume in, subtracted (only a positive volume, as the MIMIC-IV
+    # concept code), so that irrigation returned through the catheter is not urine
     u = con.execute(f"""
-        SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time, TRY_CAST(o.VALUE AS DOUBLE) AS value
+        SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time,
+               CASE WHEN i.sign < 0 THEN -greatest(TRY_CAST(o.VALUE AS DOUBLE), 0)
+                    ELSE TRY_CAST(o.VALUE AS DOUBLE) END AS value
         FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
-        WHERE CAST(o.ITEMID AS BIGINT) IN (SELECT itemid FROM uo_items)
-          AND {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi""").df()
+        JOIN uo_items i ON CAST(o.ITEMID AS BIGINT) = i.itemid
+        WHERE {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi""").df()
     u = u.dropna()
     blk = ((u["time"].to_numpy() - lo.reindex(u["icustay_id"]).to_numpy()) // (4 * HOUR))
     return u.assign(blk=blk.astype("int64")).groupby(["icustay_id", "blk"])["value"].sum()
 
 
+def hold_blocks(b: pd.DataFrame, width_h: float) -> pd.DataFrame:
+    """Carry each SOFA component of ``BLOCK_FEATURES`` into later blocks of its stay that lack
+    it, for at most its AI-Clinician hold time (sample_and_hold.csv: MAP 2 h, GCS 6 h, PaO2
+    8 h, FiO2 12 h, platelets / bilirubin / creatinine 28 h): block b takes the value of the
+    stay's last earlier block b' with one when (b - b') x ``width_h`` <= hold, the distance
+    AI-Clinician's SAH.m measures between its 4 h records. Other columns (urine output: not
+    in AI-Clinician's matrix) are not carried. ``b`` is indexed by (icustay_id, blk)."""
+    hold = data_table("sample_and_hold.csv").set_index("feature")["hold_hours"]
+    out = b.copy()
+    blk = pd.Series(b.index.get_level_values(1).to_numpy("float64"), index=b.index)
+    for c in BLOCK_FEATURES:
+        if c not in out or c not in hold.index:
+            continue
+        seen = blk.where(out[c].notna()).groupby(level=0).ffill()
+        filled = out[c].groupby(level=0).ffill()
+        ok = out[c].isna() & ((blk - seen) * width_h <= float(hold[c]))
+        out[c] = out[c].where(~ok, filled)
+    return out
+
+
+CARRY = ("none", "hold", "unlimited")
+
+
 def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
-               carry: bool = False, opts: Mimic3Options | None = None) -> pd.DataFrame:
+               carry: str = "none", opts: Mimic3Options | None = None) -> pd.DataFrame:
     """SOFA points per organ in 4 h blocks [start + 4 b h, start + 4 (b + 1) h),
     b = 0..n_blocks - 1, for the stays of ``start`` (index icustay_id).
 
     Block means of the charted / lab values (no imputation); vasopressor = max
-    NE-equivalent rate running in the block. ``carry``: a component missing in a block takes
-    the stay's last earlier block value (sample-and-hold over blocks, as AI-Clinician's
-    SOFA is computed after sample-and-hold). ``opts.sofa``: which GCS items, and whether
+    NE-equivalent rate running in the block. ``carry`` (``CARRY``): a component missing in a
+    block takes the stay's last earlier block value for at most its AI-Clinician hold time
+    (``"hold"``: ``hold_blocks``; AI-Clinician's SOFA is computed after sample-and-hold),
+    without a limit (``"unlimited"``: the withdrawal rule's stand-in for AI-Clinician's
+    imputed record) or not at all (``"none"``). ``opts.sofa``: which GCS items, and whether
     the block's urine output counts (``_urine``). Returns a frame indexed by
     (icustay_id, blk) with ``SOFA_ORGANS``, ``sofa`` and ``vaso``."""
     opts = opts or Mimic3Options()
@@ -530,7 +720,11 @@ def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
             b[c] = np.nan
     if opts.sofa == "ai_clinician":
         b["uo"] = _urine(con, ids, lo, n_blocks).reindex(idx).to_numpy()
-    if carry:
+    if carry not in CARRY:
+        raise ValueError(f"block_sofa: carry must be one of {CARRY}, got {carry!r}")
+    if carry == "hold":
+        b = hold_blocks(b, 4)
+    elif carry == "unlimited":
         b = b.groupby(level=0).ffill()
     b["pf"] = b["paO2"] / (b["sofa_fio2"] / 100)
     _, _, mv_v, cv_v = _inputs(con, ids, lo, hi, opts.rewritten)
@@ -547,14 +741,15 @@ def max_sofa(con, stays: pd.DataFrame, onset: pd.Series,
              opts: Mimic3Options | None = None) -> pd.DataFrame:
     """Max over the eighteen 4 h blocks of [onset - 48 h, onset + 24 h) of the block SOFA
     (``block_sofa``), each component carried forward from the last earlier block of the
-    window that has it (AI-Clinician scores SOFA on sample-and-held values; without carrying,
+    window that has it for at most its hold time (``hold_blocks``: AI-Clinician scores SOFA on
+    values sample-and-held that long; without carrying,
     ``opts.sofa_carry = "none"``, a block scores only what was charted in those 4 h, and the
     maximum understates).
     Returns, per stay, ``max_sofa`` and ``sofa_organs``: the organs scoring >= 1 point in the
     first block reaching the maximum (';'-joined)."""
     opts = opts or Mimic3Options()
-    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18, carry=opts.sofa_carry == "carry",
-                        opts=opts)
+    blocks = block_sofa(con, stays, onset - 48 * HOUR, 18,
+                        carry="hold" if opts.sofa_carry == "carry" else "none", opts=opts)
     first = blocks["sofa"].groupby(level=0).idxmax()  # first block with the maximum
     best = blocks.loc[first.to_numpy()]
     organs = best[list(SOFA_ORGANS)].apply(
@@ -582,7 +777,8 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None,
 
     AI-Clinician's record is [onset - 24 h, onset + 48 h] in 4 h blocks of sample-and-held,
     imputed values; here it is the ICU stay, and SOFA components are carried forward over
-    blocks (``block_sofa(carry=True)``), the nearest equivalent without imputation.
+    blocks without a time limit (``block_sofa(carry="unlimited")``), the nearest equivalent
+    without imputation (the SOFA >= 2 criterion holds each only for its hold time).
     ``inputs`` (a dict), when given, receives a frame of the rule's inputs per stay
     (``WITHDRAWAL_INPUTS``; the block values only for the stays that died early with a short
     stay, the others need no more).
@@ -601,8 +797,10 @@ def withdrawn(con, stays: pd.DataFrame, opts: Mimic3Options | None = None,
         inputs["frame"] = table.reindex(columns=list(WITHDRAWAL_INPUTS))
     if not len(cand):
         return pd.Index([], dtype="int64")
-    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], max_blocks - 1, carry=True,
-                        opts=opts)
+    # carried without a limit: AI-Clinician's record has every component in every block
+    # (held, then interpolated and imputed), so its last block always scores every organ
+    blocks = block_sofa(con, s.loc[cand], s.loc[cand, "intime"], max_blocks - 1,
+                        carry="unlimited", opts=opts)
     last = n_blk.loc[cand].astype("int64") - 1
     keep = blocks.index.get_level_values("blk").to_numpy() <= last.reindex(
         blocks.index.get_level_values(0)).to_numpy()
@@ -724,6 +922,14 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
             if len(has_onset) else pd.DataFrame(columns=["max_sofa", "sofa_organs"]))
     crit["sofa_ge_2"] = (sofa["max_sofa"] >= 2).reindex(ids_all).astype("boolean")
+    ev_counts: dict = {}
+    if opts.sofa == "ai_clinician":  # urine output read: irrigant rows subtracted, counted
+        neg = data_table("urine.csv").query("sign < 0")[["itemid"]].astype("int64")
+        con.register("uo_neg", neg)
+        ev_counts["urine_irrigant"] = con.execute("""
+            SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
+            WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_neg)
+            GROUP BY 1""").df().set_index("icustay_id")["n"]
     crit["mortality_documented"] = allst["hospital_expire_flag"].isin([0, 1]).to_numpy()
     documented = con.execute("""
         SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
@@ -742,7 +948,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
     dropped: list = []
     ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts,
-                 dropped=dropped)
+                 dropped=dropped, counts=ev_counts)
     n_implausible = pd.concat(dropped)["icustay_id"].value_counts() if dropped else None
     # blood pressure completed per charting time, then hourly means and sample-and-hold of
     # charted and completed values alike (AI-Clinician's order)
@@ -780,16 +986,18 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
     vit = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
     crit["vitals_complete"] = vit.reindex(full).reindex(ids_all).astype("boolean")
-    # stays_per_patient = first: of a patient's stays meeting every criterion before this
-    # one, only the earliest (INTIME) stays; evaluated on those stays only
+    # stays_per_patient = first: only the patient's first ICU stay (earliest INTIME of all
+    # the patient's ICU stays, as the MIMIC Code Repository's first_icu_stay), kept if it
+    # meets every criterion above; a later stay never stands in for an ineligible first one
+    # (that would select patients on what happened after their first stay). Evaluated on
+    # the stays meeting every criterion above only
     before = ids_all[crit[list(STEPS[1:STEPS.index("stays_per_patient")])]
                      .fillna(False).all(axis=1).to_numpy(bool)]
     if opts.stays_per_patient == "first":
-        cand = allst.loc[before].sort_values("intime", kind="stable")  # ties: lower id
-        first = cand.drop_duplicates("subject_id").index
+        first = allst.sort_values("intime", kind="stable").drop_duplicates("subject_id").index
         crit["stays_per_patient"] = pd.Series(before.isin(first), index=before).reindex(
             ids_all).astype("boolean")
-        spp_desc = "the patient's first stay (INTIME) meeting every criterion above"
+        spp_desc = "the patient's first ICU stay (INTIME), if it meets every criterion above"
     else:
         crit["stays_per_patient"] = pd.Series(True, index=before).reindex(ids_all).astype(
             "boolean")
@@ -823,7 +1031,15 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     held, raw = held.loc[ids], raw.loc[ids]
     t0 = t0_all.reindex(ids)
     offset = offset.reindex(ids)
+    # an hour still without a weight takes the patient's own last weight charted before it
+    # (this stay beyond the 72 h hold, or an earlier stay) before any other patient's
+    own_w = own_earlier_weight(con, allst, held, t0) if len(ids) else pd.Series(dtype=float)
+    if len(own_w):
+        held.loc[own_w.index, "weight"] = own_w.to_numpy()
+    n_own_w = (own_w.groupby(level=0).size() if len(own_w)
+               else pd.Series(dtype="int64"))
     after_hold_missing = held[["weight", *hourly.LABS]].isna()
+    imp_bad = pd.Index([], dtype="int64")  # stays whose imputed weight is implausible
     n_w = int(after_hold_missing["weight"].groupby(level=0).any().sum())
     n_w_hours = int(after_hold_missing["weight"].sum())
     if len(ids):
@@ -844,6 +1060,24 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
             w = held["weight"].where(wmiss)
             first_w = w.groupby(level=0).transform("first")
             held.loc[wmiss, "weight"] = first_w[wmiss]
+            # the plausibility rule applies to an imputed weight as to a charted one: a
+            # donor's weight whose BMI with the patient's height (charted before the first
+            # imputed hour, by that hour's end) is implausible is not used; the stay then
+            # fails ``imputable``
+            firsts = wmiss[wmiss].reset_index()[["icustay_id", "t"]].drop_duplicates(
+                "icustay_id")
+            end = (t0.reindex(firsts["icustay_id"]).to_numpy()
+                   + (firsts["t"].to_numpy() + 1) * HOUR)
+            kg = first_w.loc[pd.MultiIndex.from_frame(firsts)].to_numpy(float)
+            ok = np.isfinite(kg)
+            bad = np.zeros(len(kg), dtype=bool)
+            bad[ok] = _bmi_implausible(
+                con, stays["subject_id"].reindex(firsts["icustay_id"]).to_numpy("int64")[ok],
+                end[ok], kg[ok])
+            imp_bad = pd.Index(firsts["icustay_id"].to_numpy()[bad])
+            if len(imp_bad):
+                drop = wmiss & held.index.get_level_values(0).isin(imp_bad)
+                held.loc[drop, "weight"] = np.nan
     done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
     crit["imputable"] = done.reindex(ids_all).astype("boolean")
     ids = ids[done.reindex(ids).to_numpy(bool)]
@@ -874,6 +1108,11 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
     # doses on the same anchor: hour t of the doses is [t0 + t h, t0 + (t + 1) h)
     mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR, opts.rewritten)
+    # vasopressor rows in a unit no conversion rule matches give no dose: counted, not silent
+    unknown = pd.concat([v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
+                         for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)] or
+                        [pd.Series(dtype="int64")])
+    ev_counts["vaso_unit_unknown"] = unknown.value_counts()
     fl = doses.hourly_fluid(t0, mv_f, cv_f, t_max)
     va = doses.hourly_vasopressor(t0, mv_v, cv_v, t_max)
     key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
@@ -892,11 +1131,23 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
     audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing,
                    evidence=evidence, withdrawal=wd_inputs.get("frame"),
-                   n_implausible=n_implausible)
+                   n_implausible=n_implausible, n_own_weight=n_own_w,
+                   imputed_weight_implausible=imp_bad,
+                   counts={**ev_counts, "screens": evidence.get("screens"),
+                           "culture_by_time": evidence.get("culture_by_time")})
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
                         missingness=missingness, anchors=anchors, imputed=imputed,
                         stays=audit, options=opts.as_dict())
 
+
+# counts of rows set aside by a rule, per stay -> audit column
+AUDIT_COUNTS = {"map_outside": "n_map_outside_range",
+                "vaso_unit_unknown": "n_vaso_rows_unit_unknown",
+                "urine_irrigant": "n_urine_irrigant_rows",
+                "venous_gas": "n_venous_gas_rows",
+                "screens": "n_screen_cultures",
+                "lab_by_time": "n_labs_linked_by_time",
+                "culture_by_time": "n_cultures_linked_by_time"}
 
 INFECTION_STATUS = ("onset", "onset_outside_window", "no_antibiotic_no_culture",
                     "no_antibiotic", "no_culture", "no_pair_in_time")
@@ -905,7 +1156,9 @@ INFECTION_STATUS = ("onset", "onset_outside_window", "no_antibiotic_no_culture",
 def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.DataFrame,
            t0: pd.Series, in_cohort: pd.Index, imputed: pd.DataFrame,
            evidence: dict | None = None, withdrawal: pd.DataFrame | None = None,
-           n_implausible: pd.Series | None = None) -> pd.DataFrame:
+           n_implausible: pd.Series | None = None, n_own_weight: pd.Series | None = None,
+           imputed_weight_implausible: pd.Index | None = None,
+           counts: dict | None = None) -> pd.DataFrame:
     """One row per ICU stay: identifiers, onset (time, source, the antibiotic and culture
     times; also an onset outside the window, flagged), ``infection_status`` (why the
     suspected-infection step passed or failed: ``INFECTION_STATUS``), max SOFA and the
@@ -913,8 +1166,12 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     (``WITHDRAWAL_INPUTS``), t0, each criterion (True / False / NA = not evaluated: the SOFA
     needs an onset, the hourly criteria an anchor, imputable the rest of the cohort), the
     first failed step, every failed criterion, the weights deleted as implausible
-    (``n_weight_implausible``: charts in the extraction window), and the imputed cells:
-    weight hours and lab cells apart."""
+    (``n_weight_implausible``: charts in the extraction window), the hours given the
+    patient's own earlier weight (``n_own_weight_hours``: beyond the 72 h hold, or from an
+    earlier stay), whether the weight imputed from another patient was implausible for the
+    patient's height (``weight_imputed_implausible``: the stay fails ``imputable``), the
+    rows each semantic rule set aside in the extraction window (``counts``:
+    ``n_map_outside_range``, ...), and the imputed cells: weight hours and lab cells apart."""
     a = pd.DataFrame({schema.STAY_ID: allst.index.to_numpy("int64"),
                       "subject_id": allst["subject_id"].to_numpy(),
                       "hadm_id": allst["hadm_id"].to_numpy(),
@@ -949,6 +1206,14 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     a["in_cohort"] = allst.index.isin(in_cohort)
     a["n_weight_implausible"] = (n_implausible.reindex(allst.index).fillna(0).astype("int64")
                                  .to_numpy() if n_implausible is not None else 0)
+    a["n_own_weight_hours"] = (n_own_weight.reindex(allst.index).fillna(0).astype("int64")
+                               .to_numpy() if n_own_weight is not None else 0)
+    a["weight_imputed_implausible"] = allst.index.isin(
+        imputed_weight_implausible if imputed_weight_implausible is not None else [])
+    for key, col in AUDIT_COUNTS.items():
+        n = (counts or {}).get(key)
+        a[col] = (n.reindex(allst.index).fillna(0).astype("int64").to_numpy()
+                  if n is not None else 0)
     per_stay = imputed.groupby(level=0).sum()
     n_w = per_stay["weight"] if "weight" in per_stay else pd.Series(dtype="int64")
     n_lab = per_stay.drop(columns="weight", errors="ignore").sum(axis=1)

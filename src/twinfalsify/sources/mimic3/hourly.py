@@ -107,6 +107,42 @@ def _within_limits(feature: str, v: pd.Series) -> pd.Series:
 
 
 BP = ("SysBP", "MeanBP", "DiaBP")
+MAP_REFERENCE_H = 2.0  # the vitals' hold (sample_and_hold.csv): a reference is this recent
+
+
+def map_outside_range(ev: pd.DataFrame) -> np.ndarray:
+    """True for each MeanBP row of ``ev`` (icustay_id, time, feature, value) outside
+    [DiaBP, SysBP] of the stay's last systolic and diastolic charted at or before it, each at
+    most ``MAP_REFERENCE_H`` old (values of one instant averaged). A mean pressure lies
+    between the diastolic and the systolic by definition (MAP = DBP + (SBP - DBP) / 3 is the
+    usual approximation); one outside them is an artefact, e.g. a transducer being zeroed
+    (3 mmHg) or flushed. Only earlier or simultaneous pressures are used (causal); with one
+    reference only (e.g. no diastolic read under ``bp_items: ai_clinician``) the MAP is
+    checked against that one; a MAP with none passes."""
+    out = np.zeros(len(ev), dtype=bool)
+    is_map = (ev["feature"] == "MeanBP").to_numpy()
+    if not is_map.any():
+        return out
+    q = pd.DataFrame({"row": np.flatnonzero(is_map),
+                      "icustay_id": ev["icustay_id"].to_numpy()[is_map],
+                      "time": pd.to_datetime(ev["time"].to_numpy()[is_map]),
+                      "value": ev["value"].to_numpy(float)[is_map]}).sort_values("time")
+    ref = {}
+    for f in ("SysBP", "DiaBP"):
+        r = ev[ev["feature"] == f].groupby(["icustay_id", "time"], as_index=False)["value"].mean()
+        if r.empty:
+            ref[f] = pd.Series(np.nan, index=q["row"].to_numpy())
+            continue
+        r = r.assign(time=pd.to_datetime(r["time"])).sort_values("time")
+        hit = pd.merge_asof(q[["row", "icustay_id", "time"]], r.rename(columns={"value": f}),
+                            on="time", by="icustay_id", direction="backward",
+                            tolerance=pd.Timedelta(hours=MAP_REFERENCE_H))
+        ref[f] = hit.set_index("row")[f]
+    v = q.set_index("row")["value"]
+    s, d = ref["SysBP"].reindex(v.index), ref["DiaBP"].reindex(v.index)
+    bad = (s.notna() & (v > s)) | (d.notna() & (v < d))
+    out[bad.index[bad.to_numpy()].to_numpy()] = True
+    return out
 
 
 def complete_bp(ev: pd.DataFrame) -> pd.DataFrame:

@@ -11,7 +11,9 @@ AIClinician_mimic3_dataset_160219.m, AIClinician_Data_extract_MIMIC3_140219.ipyn
   the MetaVision RASS (228096; Wesley et al., JAMA 2003), renal from creatinine and the
   urine output of the 4 h block (OUTPUTEVENTS, < 84 mL: 3 points, < 34 mL: 4).
 - ``sofa_carry``: the SOFA of a 4 h block around the onset ``carry``s each component
-  from the last earlier block that has it (AI-Clinician scores sample-and-held values) or
+  from the last earlier block that has it, for at most AI-Clinician's hold time of the
+  component (AI-Clinician scores values sample-and-held that long: MAP 2 h, GCS 6 h, PaO2
+  8 h, FiO2 12 h, labs 28 h; sample_and_hold.csv) or
   uses only values charted in the block (``none``: understates the maximum; kept to
   reproduce cohorts extracted that way).
 - ``bp_items``: ``measured`` = MetaVision diastolic pressures 220051 (arterial) and 220180
@@ -32,8 +34,10 @@ AIClinician_mimic3_dataset_160219.m, AIClinician_Data_extract_MIMIC3_140219.ipyn
 - ``event_stay``: an antibiotic / culture without ICUSTAY_ID in the window of several stays
   of its admission goes to the ``nearest`` stay or the ``last`` one (AI-Clinician's loop).
 - ``stays_per_patient``: ``all`` ICU stays of a patient that meet the criteria are kept
-  (AI-Clinician, the paper), or only the ``first`` of them (one stay per patient: stays of
-  one patient are not independent).
+  (AI-Clinician, the paper), or only the patient's ``first`` ICU stay, if it meets them
+  (one stay per patient: stays of one patient are not independent; the first ICU stay as
+  the MIMIC Code Repository's first_icu_stay, not the first eligible one, so that a later
+  stay never stands in for an ineligible first).
 """
 
 from __future__ import annotations

@@ -48,6 +48,7 @@ RENAMED: dict[str, dict[str, str]] = {
     "ICUSTAYS": {"ICUSTAY_ID": "stay_id", "DBSOURCE": "'metavision'"},
     "CHARTEVENTS": {"ICUSTAY_ID": "stay_id", "ERROR": "CAST(NULL AS VARCHAR)"},
     "PRESCRIPTIONS": {"ICUSTAY_ID": "CAST(NULL AS VARCHAR)", "STARTDATE": "starttime"},
+    "MICROBIOLOGYEVENTS": {"TEST_NAME": "test_name"},
     "INPUTEVENTS_MV": {"ICUSTAY_ID": "stay_id"},
     "OUTPUTEVENTS": {"ICUSTAY_ID": "stay_id"},
 }

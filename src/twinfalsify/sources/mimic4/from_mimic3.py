@@ -74,7 +74,8 @@ TABLES: dict[str, tuple[str | None, dict[str, str], str]] = {
     "MICROBIOLOGYEVENTS": ("hosp/microbiologyevents", {c: c for c in (
         "subject_id", "hadm_id", "chartdate", "charttime", "spec_itemid", "spec_type_desc",
         "org_itemid", "org_name", "ab_itemid", "ab_name", "dilution_text",
-        "dilution_comparison", "dilution_value", "interpretation")}, "subject"),
+        "dilution_comparison", "dilution_value", "interpretation")}
+        | {"test_name": "CAST(NULL AS VARCHAR)"}, "subject"),
     "INPUTEVENTS_MV": ("icu/inputevents", {c: c for c in (
         "subject_id", "hadm_id")} | {"stay_id": "icustay_id", "caregiver_id": "cgid"} | {
         c: c for c in (
