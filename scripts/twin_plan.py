@@ -24,6 +24,7 @@ def main(sm):
         int(runs.get("n_shards", 4)),
         int(sm.params.seed),
         x0=x0_frame(d, [int(s) for s in ids])[list(FEATURES)].to_numpy(float),
+        x0_stays=runs.get("x0_stays"),
     )
     log.info(
         "%d X_0 per sequence, %d nodes, twin-hours %s",

@@ -1,9 +1,11 @@
 """The Pulse study on real ICU patients (config/pulse-demo.yaml), replayed from runs recorded
 with a real Pulse 4.2 engine (tests/fixtures/pulse-demo/): the whole study through Snakemake,
-and every twin run equal to the real engine's. Needs the open MIMIC-III demo in ../shared.
+and every twin run equal to the real engine's. The study reads the demo cohort's trajectories
+as they were when the runs were recorded (tests/fixtures/pulse-demo/trajectories.parquet) and
+simulates the recorded X_0 (twin_runs.x0_stays).
 
-A failure here after a change to the MIMIC-III extraction or the design means the recording
-no longer covers the study's X_0 or sequences: record again (tests/fixtures/pulse-demo/README.md).
+A failure here after a change to the design or the twin plan means the recording no longer
+covers the study's X_0 or sequences: record again (tests/fixtures/pulse-demo/README.md).
 """
 
 from __future__ import annotations
@@ -14,22 +16,18 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import run_snakemake, shared_dir
+from conftest import run_snakemake
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "pulse-demo"
-SHARED = shared_dir()
-DEMO = SHARED / "data" / "mimic-iii-demo" if SHARED else None
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(DEMO is None or not (DEMO / "CHARTEVENTS.csv.gz").is_file(),
-                                 reason="MIMIC-III demo not present in ../shared/data")]
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     work = tmp_path_factory.mktemp("pulse-demo")
     cfg = yaml.safe_load((ROOT / "config" / "pulse-demo.yaml").read_text())
-    cfg["source"]["mimic3"]["path"] = str(DEMO)
+    cfg["source"]["table"]["path"] = str(ROOT / cfg["source"]["table"]["path"])
     config = work / "pulse-demo.yaml"
     config.write_text(yaml.safe_dump(cfg))
     run = run_snakemake(work, config, "--cores", "2")
@@ -63,3 +61,24 @@ def test_fixture_readme_says_how_it_was_made():
     for needed in ("4.2", "9af9d8f6", "runs.record", "pulse.worker", "config/pulse-demo.yaml"):
         assert needed in readme
     assert (FIXTURE / "answers.jsonl").stat().st_size > 0
+
+
+def test_the_frozen_cohort_holds_the_recorded_x0():
+    """The table the study reads gives every recorded X_0 exactly (the replay matches runs
+    by X_0 values): hour 0 of each x0_stays stay equals the recording's initial state."""
+    from twinfalsify.runs.plan import plan_twin_runs
+    from twinfalsify.schema import ContractError
+
+    cfg = yaml.safe_load((ROOT / "config" / "pulse-demo.yaml").read_text())
+    table = pd.read_parquet(ROOT / cfg["source"]["table"]["path"])
+    x0 = table[table["t"] == 0].set_index("stay_id")
+    recorded = pd.read_parquet(FIXTURE / "runs_real.parquet")["init_stay_id"].unique()
+    assert sorted(recorded) == sorted(cfg["twin_runs"]["x0_stays"])
+    assert set(recorded) <= set(x0.index)
+    hyps = pd.DataFrame({"actions": [[0], [10]]})
+    plan = plan_twin_runs(hyps, x0.index.to_numpy(), None, 1, 1, x0_stays=[int(recorded[1])])
+    assert plan.x0_stay_ids == [int(recorded[1])]
+    with pytest.raises(ContractError, match=r"stay\(s\) \[1\] are not in D"):
+        plan_twin_runs(hyps, x0.index.to_numpy(), None, 1, 1, x0_stays=[1])
+    with pytest.raises(ContractError, match="runs_per_sequence to null"):
+        plan_twin_runs(hyps, x0.index.to_numpy(), 8, 1, 1, x0_stays=[int(recorded[1])])

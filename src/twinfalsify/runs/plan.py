@@ -92,6 +92,7 @@ def plan_twin_runs(
     n_shards: int,
     seed: int,
     x0: np.ndarray | None = None,
+    x0_stays: list[int] | None = None,
 ) -> TwinPlan:
     """X_0: the first m of D's stays in the order of a keyed hash of their X_0 (``x0``: the
     (len(d_stay_ids), F) t = 0 features aligned with ``d_stay_ids``; module doc). Equal X_0
@@ -99,10 +100,21 @@ def plan_twin_runs(
     Without ``x0`` (plans built by hand): the first m of a seeded permutation of the sorted
     stay ids. Either way every stay is drawn with the same probability m / |D|, so the X_0
     law is D's stays' law; a patient with several stays is drawn as often as those stays.
+    ``x0_stays`` (``twin_runs.x0_stays``): exactly these stays of D, in this order, no draw
+    (the X_0 a recording of a real engine covers); ``runs_per_sequence`` must be None.
     """
     ids = np.asarray(d_stay_ids, dtype=np.int64)
     if len(np.unique(ids)) != len(ids):
         raise ContractError("twin plan: the stay ids of D must be distinct")
+    if x0_stays is not None:
+        if runs_per_sequence:
+            raise ContractError("twin_runs.x0_stays names the X_0 stays: set "
+                                "twin_runs.runs_per_sequence to null")
+        missing = sorted(set(int(s) for s in x0_stays) - set(ids.tolist()))
+        if missing:
+            raise ContractError(f"twin_runs.x0_stays: stay(s) {missing} are not in D "
+                                f"(the test set of the split)")
+        return _plan(hyps, [int(s) for s in x0_stays], n_shards, seed)
     m = len(ids) if not runs_per_sequence else min(int(runs_per_sequence), len(ids))
     if runs_per_sequence and int(runs_per_sequence) > len(ids):
         log.warning(
@@ -118,7 +130,12 @@ def plan_twin_runs(
             raise ContractError(f"twin plan: x0 must have one row per stay of D ({len(ids)}), "
                                 f"got shape {x0.shape}")
         perm = ids[np.lexsort((ids, x0_keys(x0, seed)))]
-    x0 = perm[:m]
+    return _plan(hyps, [int(s) for s in perm[:m]], n_shards, seed)
+
+
+def _plan(hyps: pd.DataFrame, x0: list[int], n_shards: int, seed: int) -> TwinPlan:
+    """The plan for the X_0 stays ``x0``: the prefix tree of the hypotheses' sequences, its
+    leaves grouped by first action and balanced over the shards."""
     seqs = {tuple(int(a) for a in s) for s in hyps["actions"].tolist()}
     nodes = {s[:k] for s in seqs for k in range(1, len(s) + 1)}
     leaves = sorted(s for s in nodes if not any(o[: len(s)] == s and o != s for o in nodes))
@@ -133,7 +150,7 @@ def plan_twin_runs(
         shards[j].extend(node_name(s) for s in group)
         load[j] += sum(map(len, group))
     return TwinPlan(
-        x0_stay_ids=[int(s) for s in x0],
+        x0_stay_ids=list(x0),
         seed=int(seed),
         shards=shards,
         nodes=sorted(node_name(s) for s in nodes),
