@@ -332,7 +332,7 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
     one twin"), run as written: the twin's shards and what follows are rebuilt, no shard
     or result of another twin; afterwards nothing is left to do."""
     repo, work, config, cfg, _ = study
-    doc = (repo / "docs" / "how-to" / "run-workflow.md").read_text()
+    doc = (ROOT / "docs" / "how-to" / "run-workflow.md").read_text()
     block = doc.split("<!-- rerun-one-twin -->", 1)[1].split("```bash\n", 1)[1].split("```")[0]
     command = block.strip()
     assert command.startswith("snakemake ") and "\n" not in command
