@@ -8,9 +8,13 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 import pandas as pd  # noqa: E402
 
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
-from twinfalsify.runs.plan import TwinPlan, status_summary, twin_hellos  # noqa: E402
+from twinfalsify.runs.plan import (  # noqa: E402
+    TwinPlan,
+    failing_patients,
+    status_summary,
+    twin_hellos,
+)
 from twinfalsify.schema import ContractError  # noqa: E402
-from twinfalsify.summary import failing_patients  # noqa: E402
 
 
 def main(sm):

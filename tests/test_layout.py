@@ -20,13 +20,13 @@ PKG = SRC / "twinfalsify"
 
 # A module may import its own layer and the layers below it, never one above.
 LAYERS: list[tuple[str, ...]] = [
-    ("twinfalsify", "schema", "io", "noise", "provenance"),
+    ("twinfalsify", "schema", "io", "noise", "provenance", "unitscreen"),
     ("sources",),
     ("split", "design", "bounds", "inference", "falsify", "tables"),
     ("twins",),
     ("runs", "studyconfig"),
     ("pulse",),
-    ("summary", "figures", "calibration"),
+    ("summary", "figures", "calibration", "explain"),
 ]
 LAYER_OF = {top: i for i, tops in enumerate(LAYERS) for top in tops}
 

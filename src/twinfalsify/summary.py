@@ -20,7 +20,7 @@ from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes,
 from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
-from twinfalsify.runs.plan import TwinPlan, load_nodes, x0_frame
+from twinfalsify.runs.plan import TwinPlan, failing_patients, load_nodes, x0_frame
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
 from twinfalsify.tables import markdown_table
 
@@ -355,22 +355,6 @@ def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None)
         small = (results["n"].to_numpy() < min_n) | (results["nhat"].to_numpy() < min_n)
         out |= mine & small
     return out
-
-
-FAILING_WARN = 0.5  # a twin failing every run of more than this share of X_0 is warned about
-
-
-def failing_patients(runs: pd.DataFrame, twin: str) -> str:
-    """'' or a warning when more than FAILING_WARN of the X_0 got no ok run at all (a twin
-    that refuses most patients tests little, however clean its exit)."""
-    ok = runs["status"].eq("ok").groupby(runs["init_stay_id"]).any()
-    failed = int((~ok).sum())
-    if not len(ok) or failed / len(ok) <= FAILING_WARN:
-        return ""
-    top = runs.loc[runs["status"] != "ok", "status"].value_counts()
-    what = ", ".join(f"{k} {v}" for k, v in top.head(3).items())
-    return (f"twin {twin}: {failed} of {len(ok)} patients ({failed / len(ok):.0%}) got no ok "
-            f"run (failed runs: {what}); its tests see the failures only as worst cases")
 
 
 CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)

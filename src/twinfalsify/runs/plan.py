@@ -421,3 +421,19 @@ def clamp_shares(runs: pd.DataFrame) -> dict[str, object]:
         "any": (sum(1 for f in per_run.values() if f) / m) if m else 0.0,
         "by_feature": {f: counts[f] / m for f in sorted(counts)},
     }
+
+
+FAILING_WARN = 0.5  # a twin failing every run of more than this share of X_0 is warned about
+
+
+def failing_patients(runs: pd.DataFrame, twin: str) -> str:
+    """'' or a warning when more than FAILING_WARN of the X_0 got no ok run at all (a twin
+    that refuses most patients tests little, however clean its exit)."""
+    ok = runs["status"].eq("ok").groupby(runs["init_stay_id"]).any()
+    failed = int((~ok).sum())
+    if not len(ok) or failed / len(ok) <= FAILING_WARN:
+        return ""
+    top = runs.loc[runs["status"] != "ok", "status"].value_counts()
+    what = ", ".join(f"{k} {v}" for k, v in top.head(3).items())
+    return (f"twin {twin}: {failed} of {len(ok)} patients ({failed / len(ok):.0%}) got no ok "
+            f"run (failed runs: {what}); its tests see the failures only as worst cases")
