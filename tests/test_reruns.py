@@ -25,6 +25,8 @@ import re
 import shutil
 import subprocess
 import sys
+from contextlib import contextmanager
+from pathlib import Path
 from shlex import quote as shlex_quote
 
 import pandas as pd
@@ -57,6 +59,17 @@ def dry_run(repo, work, config, *args: str) -> dict[str, list[str]]:
         outputs = re.search(r"output: (.*)", m.group(2))
         jobs.setdefault(m.group(1), []).append(outputs.group(1) if outputs else "")
     return jobs
+
+
+@contextmanager
+def edited(path: Path):
+    """``path`` with a comment appended (new bytes, as an edit), restored afterwards."""
+    text = path.read_text()
+    path.write_text(text + "\n# an edit\n")
+    try:
+        yield path
+    finally:
+        path.write_text(text)
 
 
 def n_jobs(jobs: dict[str, list[str]]) -> int:
@@ -138,12 +151,8 @@ def test_editing_a_command_twins_script_reruns_exactly_its_shards(study):
 def test_library_edits_rerun_what_this_config_uses(study, path, reruns):
     repo, work, config, cfg, _ = study
     f = repo / path
-    text = f.read_text()
-    f.write_text(text + "\n# an edit\n")
-    try:
+    with edited(f):
         jobs = dry_run(repo, work, config)
-    finally:
-        f.write_text(text)
     assert bool(jobs) == reruns, jobs
     if reruns:
         assert "tests" in jobs and "twin_shard" not in jobs and "trajectories" not in jobs
@@ -233,12 +242,8 @@ def test_what_reruns_after_which_change(study):
 
     # a library edit: exactly the rules whose scripts reach bounds.py, by params
     bounds = repo / "src" / "twinfalsify" / "bounds.py"
-    text = bounds.read_text()
-    bounds.write_text(text + "\n# a fix\n")
-    try:
+    with edited(bounds):
         jobs = _dry_run(work, config, repo)
-    finally:
-        bounds.write_text(text)
     reach = {rule for rule, script in _rule_scripts(repo).items()
              if "twinfalsify.bounds" in provenance.script_modules(
                  repo / "scripts" / f"{script}.py", repo / "src")}
@@ -258,12 +263,8 @@ def test_what_reruns_after_which_change(study):
 
     # a builtin twin's module: both twins' shards (and what follows), not the design stage
     builtin = repo / "src" / "twinfalsify" / "twins" / "builtin.py"
-    text = builtin.read_text()
-    builtin.write_text(text + "\n# a fix\n")
-    try:
+    with edited(builtin):
         jobs = _dry_run(work, config, repo)
-    finally:
-        builtin.write_text(text)
     assert "twin_shard" in jobs and any("Params have changed" in w for w in jobs["twin_shard"])
     for rule in ("trajectories", "split", "design", "observational_side", "twin_plan"):
         assert rule not in jobs, (rule, jobs.get(rule))
@@ -280,12 +281,8 @@ def test_a_protocol_client_edit_reruns_no_in_process_twin(study, module):
     the command twin), none of biased's."""
     repo, work, config, cfg, _ = study
     f = repo / "src" / "twinfalsify" / module
-    text = f.read_text()
-    f.write_text(text + "\n# an edit\n")
-    try:
+    with edited(f):
         jobs = dry_run(repo, work, config, *CONTENT_ONLY)
-    finally:
-        f.write_text(text)
     shards = jobs.get("twin_shard", [])
     assert {o.split("/twins/")[1].split("/")[0] for o in shards} == {"oracle", "ext"}, jobs
     assert not [o for outs in jobs.values() for o in outs if "/twins/biased/" in o], jobs
