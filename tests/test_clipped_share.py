@@ -34,7 +34,9 @@ def _shares(shift: dict[str, float]) -> tuple:
 def test_a_unit_error_shows_as_outputs_at_one_bound():
     clipped, samples, hyps = _shares({"Glucose": -110.0})
     row = clipped.set_index("outcome").loc["Glucose"]
-    assert row["twin_at_y_lo"] > 0.9 and row["twin_at_y_up"] < 0.01
+    # nearly every twin output at y_lo, almost none at y_up (the twin's noise reaches y_up
+    # for about 1 % of its runs)
+    assert row["twin_at_y_lo"] > 0.9 and row["twin_at_y_up"] < 0.03
     # the data sit at each bound about a fifth of the time (0.2 / 0.8 quantiles of D0)
     assert 0.1 < row["data_at_y_lo"] < 0.35 and 0.1 < row["data_at_y_up"] < 0.35
     # the shares are counts of the very samples the tests clip
