@@ -21,7 +21,7 @@ extreme order statistics separate ("all resamples separated"): with B resamples
 the bootstrap cannot resolve levels below 2/B, so p in {0, 2/B, 4/B, ...} and 0 is
 not a measurement but "below the resolution". It is reported at the floor
 ``p_floor`` (default P_FLOOR = 1e-6, the lowest level of the authors' alpha grid
-reading in the issue; any floor below the smallest Holm threshold alpha / (2 H_f)
+reading; any floor below the smallest Holm threshold alpha / (2 H_f)
 keeps the paper's decisions, 1e-6 does so for families of up to 25,000 one-sided
 hypotheses at alpha = 0.05, and it keeps p > 0 for Holm and for -log10 in figures).
 ``at_floor`` flags such p-values ("all resamples separated" in results and figures).

@@ -42,7 +42,7 @@ Decisions after each batch (one-sided hypotheses; the family is the hypothesis k
     real X_0 lies in B_0 can ever enter, so the best reachable capital is
     max(max_{t<=tau} K-_t(L), K-_tau(L) (1 + min(lambda_bar, c/(1-L)) L)^r), r = remaining
     runs with X_0 in B_0.
-    This bounds the issue's "every remaining run at y_lo" path (and every other path), so
+    This bounds the path where every remaining run gives y_lo (and every other path), so
     stopping never loses a rejection the full budget could have made. Mirror for H_up with
     factor 1 + min(lambda_bar, c/U) (1 - U), U = inf{m : max_t K-_up(m) >= 2/alpha}.
 
