@@ -55,7 +55,15 @@ def evaluate_twin(
     d0_path = tmp_path / "d0.parquet"
     study.d0.to_parquet(d0_path)
     ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}, "d0": str(d0_path)}
-    twin = make_twin(name, spec, ctx)
+    samples, n_failed = twin_samples(study, make_twin(name, spec, ctx))
+    return run_tests(
+        study.hyps, samples, n_failed, make_methods(methods or {"hoeffding": {}}, 0), alpha=alpha
+    )
+
+
+def twin_samples(study: Study, twin):
+    """(hypothesis samples, failed runs per hypothesis) of ``twin`` run in-process on every
+    shard of the study's plan."""
     import io
 
     runs = pd.concat(
@@ -67,7 +75,4 @@ def evaluate_twin(
     )
     nodes = tp.load_nodes(runs, study.plan, study.x0)
     twin_vals, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
-    samples = bounds.hypothesis_samples(study.hyps, study.obs, twin_vals)
-    return run_tests(
-        study.hyps, samples, n_failed, make_methods(methods or {"hoeffding": {}}, 0), alpha=alpha
-    )
+    return bounds.hypothesis_samples(study.hyps, study.obs, twin_vals), n_failed

@@ -7,14 +7,10 @@ and the summary must warn.
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
-import pandas as pd
-from study_helpers import build_study
+from study_helpers import build_study, twin_samples
 
-from twinfalsify import bounds, summary
-from twinfalsify.runs import plan as tp
+from twinfalsify import summary
 from twinfalsify.runs.registry import make_twin
 
 
@@ -22,12 +18,7 @@ def _shares(shift: dict[str, float]) -> tuple:
     study = build_study(600, seed=5, d0_fraction=0.3, min_support=5, runs=100)
     ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}}
     twin = make_twin("b", {"kind": "biased", "shift": shift}, ctx)
-    runs = pd.concat([tp.run_shard(twin, study.plan, k, study.x0, study.actions,
-                                   log=io.StringIO()) for k in range(len(study.plan.shards))],
-                     ignore_index=True)
-    nodes = tp.load_nodes(runs, study.plan, study.x0)
-    values, _ = bounds.twin_side(study.hyps, nodes, study.states)
-    samples = bounds.hypothesis_samples(study.hyps, study.obs, values)
+    samples, _ = twin_samples(study, twin)
     return summary.clipped_shares(study.hyps, samples), samples, study.hyps
 
 

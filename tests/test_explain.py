@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import json
 import subprocess
 import sys
@@ -10,13 +9,11 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from study_helpers import build_study
+from study_helpers import build_study, twin_samples
 
-from twinfalsify import bounds
 from twinfalsify.design import StateBins
 from twinfalsify.explain import explain, subgroup_in_words
 from twinfalsify.falsify import make_methods, run_tests
-from twinfalsify.runs import plan as tp
 from twinfalsify.runs.registry import make_twin
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,12 +31,7 @@ def study_dir(tmp_path_factory) -> tuple[Path, pd.DataFrame, object]:
     (r / "design" / "actions.json").write_text(json.dumps(study.actions.to_json()))
     ctx = {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}}
     twin = make_twin("b", {"kind": "biased", "shift": {"HR": 25.0}}, ctx)
-    runs = pd.concat([tp.run_shard(twin, study.plan, k, study.x0, study.actions,
-                                   log=io.StringIO()) for k in range(len(study.plan.shards))],
-                     ignore_index=True)
-    nodes = tp.load_nodes(runs, study.plan, study.x0)
-    values, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
-    samples = bounds.hypothesis_samples(study.hyps, study.obs, values)
+    samples, n_failed = twin_samples(study, twin)
     res = run_tests(study.hyps, samples, n_failed,
                     make_methods({"hoeffding": {}, "betting": {}}, 0))
     res.to_parquet(r / "twins" / "b" / "results.parquet")
