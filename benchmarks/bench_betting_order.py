@@ -66,12 +66,7 @@ def main() -> None:
           "flipped decisions | p ratio median | p ratio 90th | s per run |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in args.twins or list(cfg["twins"]):
-        twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
-        runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
-                          for k in range(len(st.plan.shards))], ignore_index=True)
-        nodes = tp.load_nodes(runs, st.plan, st.x0)
-        tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
-        samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
+        samples, nf = _twin_samples(cfg, st, name)
         for k in args.bets:
             kind, orders, order = (k.split(":") + ["", ""])[:3]
             opts = {"bets": kind, **({"orders": int(orders)} if orders else {}),
@@ -105,14 +100,19 @@ def main() -> None:
                   f"{med} | {q90} | {np.mean(secs):.1f} |", flush=True)
 
 
-def _decisions(cfg: dict, st, name: str, testing: dict) -> tuple[pd.Series, float]:
-    """Holm decisions of the default betting test (by (hyp_id, side)) and the test's seconds."""
+def _twin_samples(cfg: dict, st, name: str):
+    """(hypothesis samples, failed runs) of twin ``name`` run in-process over the plan."""
     twin = make_twin(name, in_process(cfg["twins"][name]), st.ctx)
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
                       for k in range(len(st.plan.shards))], ignore_index=True)
     nodes = tp.load_nodes(runs, st.plan, st.x0)
     tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
-    samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
+    return bounds.hypothesis_samples(st.hyps, st.obs, tv), nf
+
+
+def _decisions(cfg: dict, st, name: str, testing: dict) -> tuple[pd.Series, float]:
+    """Holm decisions of the default betting test (by (hyp_id, side)) and the test's seconds."""
+    samples, nf = _twin_samples(cfg, st, name)
     t0 = time.monotonic()
     res = run_tests(st.hyps, samples, nf, make_methods({"betting": {}}, 0),
                     alpha=float(testing.get("alpha", 0.05)),
