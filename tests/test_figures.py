@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
-import tempfile
+import subprocess
+import sys
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -25,7 +28,8 @@ from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, to_array
 from twinfalsify.sources.synthetic import SyntheticWorld
 
-TMP = tempfile.mkdtemp(prefix="twinfalsify-figures-")
+ROOT = Path(__file__).resolve().parents[1]
+
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +77,7 @@ def _brute_enter(d: pd.DataFrame, st, outcome: str, seq, bset):
     return np.array(enter), np.array(follow), x[:, t, FEATURES.index(outcome)]
 
 
-def test_longitudinal_frame_matches_results_and_brute_force(st):
+def test_longitudinal_frame_matches_results_and_brute_force(st, tmp_path):
     hid = summary.pick_hypothesis(st.results, rejected=True)
     frame = summary.longitudinal_frame(st, hid)
     row = st.results[st.results["hyp_id"] == hid].iloc[0]
@@ -101,10 +105,10 @@ def test_longitudinal_frame_matches_results_and_brute_force(st):
             assert r["y_up"] == pytest.approx(np.quantile(sub, 0.8))
         radius = (r["y_up"] - r["y_lo"]) * np.sqrt(np.log(2 / 0.05) / (2 * r["n"]))
         assert r["r_bound"] == pytest.approx(radius)
-    _png_ok(figures.longitudinal(frame), TMP + "/_tf_long.png")
+    _png_ok(figures.longitudinal(frame), tmp_path / "_tf_long.png")
 
 
-def test_histogram_data_are_the_followers_and_entering_runs(st):
+def test_histogram_data_are_the_followers_and_entering_runs(st, tmp_path):
     hid = summary.pick_hypothesis(st.results, rejected=True, prefer_long=False)
     case = summary.histogram_data(st, hid)
     hyp = st.hyps[st.hyps["hyp_id"] == hid].iloc[0]
@@ -116,7 +120,7 @@ def test_histogram_data_are_the_followers_and_entering_runs(st):
     other = summary.pick_hypothesis(st.results, rejected=False, exclude=(hid,))
     assert other != hid and not st.results.loc[st.results["hyp_id"] == other, "rejected"].any()
     _png_ok(figures.outcome_histograms([case, summary.histogram_data(st, other)]),
-            TMP + "/_tf_hist.png")  # fmt: skip
+            tmp_path / "_tf_hist.png")  # fmt: skip
 
 
 def test_pick_hypothesis_known_answer():
@@ -203,28 +207,28 @@ def test_study_summary_matches_results(st):
     assert "<table" in summary.summary_html("s", tabs)
 
 
-def test_sample_size_figure_is_not_blank(st):
+def test_sample_size_figure_is_not_blank(st, tmp_path):
     few = st.results[st.results["outcome"].isin(["HR", "Sodium", "Glucose"])]  # any subset
     fig = figures.sample_size_histograms(few)
     assert sum(ax.get_visible() for ax in fig.axes) == 3
-    _png_ok(fig, TMP + "/_tf_n.png")
+    _png_ok(fig, tmp_path / "_tf_n.png")
 
 
-def test_propensity_and_sensitivity_figures_handle_any_methods(st):
+def test_propensity_and_sensitivity_figures_handle_any_methods(st, tmp_path):
     two = pd.concat([st.results, st.results.assign(method="other")], ignore_index=True)
     fig = figures.propensity_scatter(two)
     assert len(fig.axes) == 4  # (2 methods) x (causal, manski)
-    _png_ok(fig, TMP + "/_tf_prop.png")
+    _png_ok(fig, tmp_path / "_tf_prop.png")
     sweep = pd.DataFrame([(d, m, g, 10, max(0, 5 - int(10 * d)), k) for d in (0, 0.2, 0.5)
                           for m in ("a", "b") for g in ("HR", "pH") for k in ("causal", "manski")],
                          columns=["delta", "method", "group", "n_hypotheses", "n_rejected",
                                   "kind"])  # fmt: skip
-    _png_ok(figures.sensitivity_lines(sweep), TMP + "/_tf_sens.png")
+    _png_ok(figures.sensitivity_lines(sweep), tmp_path / "_tf_sens.png")
     with pytest.raises(ValueError, match="missing columns"):
         figures.sensitivity_lines(sweep.drop(columns="n_rejected"))
 
 
-def test_confounding_frame_observed_are_the_takers(st):
+def test_confounding_frame_observed_are_the_takers(st, tmp_path):
     world = SyntheticWorld.from_config({"n_stays": 1500})
     frame = summary.confounding_frame(st.d, world, st.actions, "MeanBP", seed=3)
     a1 = action_codes(st.d, st.actions)[:, 0]
@@ -237,7 +241,7 @@ def test_confounding_frame_observed_are_the_takers(st):
         assert ((frame["action"] == code) & (frame["which"] == "everyone")).sum() == n
     again = summary.confounding_frame(st.d, world, st.actions, "MeanBP", seed=3)
     pd.testing.assert_frame_equal(frame, again)  # seeded: reproducible
-    _png_ok(figures.confounding(frame, "MeanBP"), TMP + "/_tf_conf.png")
+    _png_ok(figures.confounding(frame, "MeanBP"), tmp_path / "_tf_conf.png")
     with pytest.raises(ValueError, match="never taken"):
         figures.confounding(frame, "MeanBP", show_action=999)
     with pytest.raises(ValueError, match="unknown feature"):
@@ -347,3 +351,40 @@ def test_longitudinal_title_names_the_intervals_and_each_methods_rejections():
     assert "Hoeffding" in fig.axes[0].get_title()
     assert any("Hoeffding" in t.get_text() for t in fig.axes[0].get_legend().get_texts())
     assert not _overlaps(fig, fig.axes[0].get_legend(), fig.axes[0])  # no interval hidden
+
+
+def test_the_style_file_is_seaborns_theme():
+    """figures.mplstyle gives every rcParam seaborn's set_theme(**STYLE) sets (image.cmap
+    aside: no figure draws an image), so figures look the same without importing seaborn."""
+    import matplotlib as mpl
+    import seaborn as sns
+    from matplotlib.colors import to_hex
+
+    def themed(apply) -> dict:
+        with mpl.rc_context():
+            mpl.rcdefaults()
+            before = dict(mpl.rcParams)
+            apply()
+            return {k: v for k, v in mpl.rcParams.items() if before.get(k) != v}
+
+    want = themed(lambda: sns.set_theme(**figures.STYLE))
+    got = themed(figures.apply_style)
+    want.pop("image.cmap")
+    assert set(got) == set(want)
+    for key, value in want.items():
+        if key == "axes.prop_cycle":
+            assert [to_hex(c) for c in got[key].by_key()["color"]] == \
+                [to_hex(c) for c in value.by_key()["color"]]
+        elif isinstance(value, float):
+            assert got[key] == pytest.approx(value, rel=1e-6), key
+        else:
+            assert str(got[key]) == str(value), key
+
+
+def test_a_figure_without_boxen_plots_does_not_import_seaborn():
+    code = ("import sys, twinfalsify.figures as f, twinfalsify.summary; "
+            "assert 'seaborn' not in sys.modules and 'scipy.stats' not in sys.modules, "
+            "sorted(m for m in sys.modules if m.startswith(('seaborn', 'scipy.stats')))[:5]")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
+    assert done.returncode == 0, done.stderr[-2000:]

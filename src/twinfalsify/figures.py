@@ -1,4 +1,7 @@
-"""Figures recomputed from the results table (matplotlib/seaborn, print-size)."""
+"""Figures recomputed from the results table (matplotlib/seaborn, print-size).
+
+seaborn is imported only by the figures that draw with it (boxen plots, the husl palette):
+importing it, and the scipy.stats it imports, is most of a small figure job's time."""
 
 from __future__ import annotations
 
@@ -10,13 +13,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-import seaborn as sns  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
 from twinfalsify.io import write_atomic  # noqa: E402
 from twinfalsify.schema import OUTCOMES  # noqa: E402
 
+# seaborn's theme, written out as a matplotlib style file (tests check that they agree)
 STYLE = {"context": "paper", "style": "whitegrid", "font_scale": 1.1}
+STYLE_FILE = Path(__file__).with_name("figures.mplstyle")
 
 
 # No creation date in the files: two runs of a study give byte-identical figures (PNG
@@ -40,7 +44,9 @@ def pvalue_boxen(
     results: pd.DataFrame, method: str = "hoeffding", kind: str = "causal", title: str | None = None
 ) -> plt.Figure:
     """Boxen plots of -log10 p_lo and -log10 p_up per outcome (paper's p-value figure)."""
-    sns.set_theme(**STYLE)
+    import seaborn as sns
+
+    apply_style()
     sub = results[(results["method"] == method) & (results["kind"] == kind)].copy()
     sub["neg_log10_p"] = -np.log10(np.clip(sub["p_value"].to_numpy(float), 1e-300, 1.0))
     order = [o for o in OUTCOMES if o in set(sub["outcome"])]
@@ -114,8 +120,8 @@ COLORS = {
 
 
 def apply_style() -> None:
-    """One look for every figure (seaborn theme from STYLE)."""
-    sns.set_theme(**STYLE)
+    """One look for every figure: seaborn's theme STYLE, from its style file."""
+    plt.style.use(STYLE_FILE)
 
 
 def unit_label(feature: str) -> str:
@@ -340,6 +346,8 @@ def sensitivity_lines(sweep: pd.DataFrame) -> plt.Figure:
                              sharey=True)  # fmt: skip
     groups = [g for g in OUTCOMES if g in set(sweep["group"])]
     groups += sorted(set(sweep["group"]) - set(groups), key=str)
+    import seaborn as sns
+
     colours = dict(zip(groups, sns.color_palette("husl", len(groups)), strict=True))
     styles = {"causal": "-", "manski": "--"}
     for ax, m in zip(axes[0], methods, strict=True):
@@ -421,6 +429,8 @@ def pvalue_boxen_methods(
     methods = list(pd.unique(results["method"]))
     if not methods:
         raise ValueError("pvalue_boxen_methods: results have no rows")
+    import seaborn as sns
+
     apply_style()
     order = [o for o in OUTCOMES if o in set(results["outcome"])]
     fig, axes = plt.subplots(len(methods), 2, figsize=(11, 4.2 * len(methods)), squeeze=False,

@@ -73,7 +73,11 @@ UNITS = {f.name: f.unit for f in FEATURE_TABLE}
 # check passes is not timed out by the study
 DEFAULT_TIMEOUT_S = 600.0
 PHYSIOLOGY = [k for k, f in enumerate(FEATURE_TABLE) if f.kind != "demographic"]
-QUIET_S = 0.2  # how long to listen for stray stdout lines after an answer
+# How long to listen for stray stdout lines after a process's first answer, after every answer
+# of a process that wrote one, and after the battery's last answer. Other answers get no
+# wait: a line already there is still read, and one arriving later is read in place of the
+# next answer (a protocol problem, never missed).
+QUIET_S = 0.2
 # Dose sequences every X_0 is run under: none, fluids only, fluids and a vasopressor
 # (iv_fluid mL/h, vasopressor ug/kg/min per hour), within the ranges a study sends.
 DOSES = (
@@ -197,6 +201,7 @@ class Checker:
     hello: dict[str, Any] = field(default_factory=dict)
     _workers: list[_Worker] = field(default_factory=list)
     _worker: _Worker | None = None  # the process the battery runs on
+    _quiet: dict[int, bool] = field(default_factory=dict)  # process -> no stray line yet
     _ids: int = 0
 
     # -- plumbing ----------------------------------------------------------------------
@@ -211,9 +216,11 @@ class Checker:
         self._workers.append(worker)
         return worker
 
-    def stray(self, worker: _Worker) -> list[str]:
-        """Lines the twin wrote after its answer (there must be none)."""
-        time.sleep(QUIET_S)
+    def stray(self, worker: _Worker, wait: bool = True) -> list[str]:
+        """Lines the twin wrote after its answer (there must be none); ``wait`` listens for
+        QUIET_S first."""
+        if wait:
+            time.sleep(QUIET_S)
         lines = []
         while not worker.lines.empty():
             line = worker.lines.get_nowait()
@@ -253,7 +260,8 @@ class Checker:
             worker.kill()  # its stream may be out of step, as in a study
             return run
         run.status, run.values = res.status, res.values
-        run.stray = self.stray(worker)
+        run.stray = self.stray(worker, wait=not self._quiet.get(id(worker), False))
+        self._quiet[id(worker)] = not run.stray
         if res.status != "ok":
             run.problem = ""  # a failure status is a legal answer
             run.status = f"{res.status}: {res.message}".strip(": ")
@@ -350,6 +358,8 @@ class Checker:
                 stray.append(f"after the answer to {run.request['id']}: {run.stray[0]!r}")
             if run.problem:  # a new process, as a study's runner starts one
                 worker = self.fresh()
+        if runs and not runs[-1].problem and (late := self.stray(worker)):
+            stray.append(f"after the answer to {runs[-1].request['id']}: {late[0]!r}")
         self._worker = worker
         broken = [r for r in runs if r.problem and "timeout" not in r.problem]
         self.add("protocol", not broken,
