@@ -101,3 +101,42 @@ def test_checker_finds_a_cycle_and_an_upward_edge():
     # the old layout's edge, parsed from source text
     src = PKG / "sources" / "synthetic.py"
     assert "twinfalsify.noise" in imports_of("twinfalsify.sources.synthetic", src, known)
+
+
+def _brute_force_imports(path: Path) -> list[tuple]:
+    """Every import statement, found by visiting every node of the file's syntax tree."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.append((None, "", [a.name for a in node.names]))
+        elif isinstance(node, ast.ImportFrom):
+            out.append((node.level, node.module or "", [a.name for a in node.names]))
+    return sorted(out, key=repr)
+
+
+def test_cached_import_statements_are_every_import_of_every_file(tmp_path, monkeypatch):
+    """The statement-only walk and its bytes-keyed cache give what a walk of every node of
+    the syntax tree gives, for every library file and rule script; an edited file is parsed
+    again (never a stale answer); an unwritable cache folder is no error."""
+    monkeypatch.setattr(provenance, "_CACHE", provenance._ImportCache())
+    monkeypatch.setenv(provenance.CACHE_ENV, str(tmp_path / "cache"))
+    files = [*PKG.rglob("*.py"), *(SRC.parent / "scripts").glob("*.py")]
+    for fresh in (True, False):  # parsed, then read back from the cache file
+        provenance._CACHE = provenance._ImportCache()
+        for f in files:
+            assert sorted(provenance.import_statements(f), key=repr) == \
+                _brute_force_imports(f), f
+        provenance._CACHE.save()
+        assert provenance._CACHE.path.is_file() and not provenance._CACHE.dirty
+        assert fresh or len(provenance._CACHE.entries) == len({f.read_bytes() for f in files})
+    edited = tmp_path / "m.py"
+    edited.write_text("def f():\n    try:\n        import a.b\n    finally:\n        pass\n")
+    assert provenance.import_statements(edited) == [(None, "", ["a.b"])]
+    edited.write_text("class C:\n    if x:\n        from .. import y\n")
+    assert provenance.import_statements(edited) == [(2, "", ["y"])]
+    (tmp_path / "ro").write_text("a file where the cache folder should be")
+    monkeypatch.setenv(provenance.CACHE_ENV, str(tmp_path / "ro"))
+    cache = provenance._ImportCache()
+    cache.get(edited)
+    cache.save()  # cannot write: parsed again next time, no error
+    assert cache.dirty

@@ -19,11 +19,18 @@ from __future__ import annotations
 
 import ast
 import hashlib
-from collections.abc import Iterable
+import json
+import os
+import sys
+from collections.abc import Iterable, Iterator
 from functools import lru_cache
 from pathlib import Path
 
 PACKAGE = "twinfalsify"
+# Parsed import statements of every file read, keyed by a hash of its bytes: a file's
+# imports are a function of its text alone, so the cache is never stale, and a Snakemake
+# start (which fingerprints every rule's code) parses only the files that changed.
+CACHE_ENV = "TWINFALSIFY_CACHE_DIR"
 
 
 def module_name(path: Path, src: Path) -> str:
@@ -48,18 +55,14 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
     """
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            targets = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join([*anchor, base] if base else anchor)
-            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base
-                       for a in node.names]
+    for level, base, names in import_statements(path):
+        if level is None:  # import a, b.c
+            targets = names
         else:
-            continue
+            if level:
+                anchor = package.split(".")[: len(package.split(".")) - level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            targets = [f"{base}.{a}" if f"{base}.{a}" in known else base for a in names]
         for t in targets:
             while t and t not in known:
                 t = t.rpartition(".")[0]
@@ -68,11 +71,91 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
     return out
 
 
+def _statements(body: list[ast.stmt]) -> Iterator[ast.Import | ast.ImportFrom]:
+    """Import statements at any depth of ``body`` (functions, classes, if/try/with blocks):
+    imports are statements, so expressions are never visited."""
+    for node in body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+            continue
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            inner = getattr(node, field, None)
+            if isinstance(inner, list):
+                yield from _statements(inner)
+
+
+def _parse_imports(text: str, path: Path) -> list[tuple[int | None, str, list[str]]]:
+    out: list[tuple[int | None, str, list[str]]] = []
+    for node in _statements(ast.parse(text, str(path)).body):
+        if isinstance(node, ast.Import):
+            out.append((None, "", [a.name for a in node.names]))
+        else:
+            out.append((node.level, node.module or "", [a.name for a in node.names]))
+    return out
+
+
+class _ImportCache:
+    """{blake2b of a file's bytes: its import statements}, kept in one JSON file in the
+    user's cache folder ($TWINFALSIFY_CACHE_DIR, else $XDG_CACHE_HOME/twinfalsify, else
+    ~/.cache/twinfalsify). Unwritable or corrupt: parsed every time, never an error."""
+
+    def __init__(self) -> None:
+        base = os.environ.get(CACHE_ENV) or Path(
+            os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / PACKAGE
+        # the grammar is Python's: one file per Python version
+        self.path = Path(base) / f"imports-py{sys.version_info[0]}{sys.version_info[1]}.json"
+        self.entries: dict[str, list] | None = None
+        self.dirty = False
+
+    def get(self, path: Path) -> list[tuple[int | None, str, list[str]]]:
+        data = path.read_bytes()
+        key = hashlib.blake2b(data, digest_size=16).hexdigest()
+        if self.entries is None:
+            try:
+                self.entries = json.loads(self.path.read_text())
+            except (OSError, ValueError):
+                self.entries = {}
+        hit = self.entries.get(key)
+        if hit is None:
+            hit = self.entries[key] = _parse_imports(data.decode(), path)
+            self.dirty = True
+        return [(lvl, base, list(names)) for lvl, base, names in hit]
+
+    def save(self) -> None:
+        if not self.dirty or self.entries is None:
+            return
+        import tempfile
+
+        tmp = None
+        try:  # a temporary file renamed into place: concurrent Snakemake starts never clash
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=".imports-")
+            with os.fdopen(fd, "w") as f:
+                json.dump(self.entries, f)
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, self.path)
+            self.dirty = False
+        except OSError:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+
+
+_CACHE = _ImportCache()
+
+
+def import_statements(path: Path) -> list[tuple[int | None, str, list[str]]]:
+    """(level, module, names) of every import statement in the file, at any depth; level
+    None for ``import a, b``. Cached by the file's bytes."""
+    return _CACHE.get(path)
+
+
 def graph(src: Path) -> dict[str, set[str]]:
     """Import graph of the library: module -> library modules it imports."""
     mods = modules(src)
     known = set(mods)
-    return {name: imports_of(name, path, known) for name, path in mods.items()}
+    out = {name: imports_of(name, path, known) for name, path in mods.items()}
+    _CACHE.save()
+    return out
 
 
 def closure(starts: Iterable[str], g: dict[str, set[str]]) -> set[str]:
@@ -110,6 +193,7 @@ def script_modules(script: str | Path, src: str | Path, extra: Iterable[str] = (
     """
     g = _graph_cached(str(Path(src).resolve()))
     direct = imports_of("__script__", Path(script), set(g))
+    _CACHE.save()
     exclude = tuple(exclude)
     return {m for m in closure([*direct, *extra], g) if not _excluded(m, exclude)}
 
