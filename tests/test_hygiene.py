@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCOPE = ("README.md", "docs", "src", "config", "tests", "benchmarks", "envs", "scripts",
-         "workflow", "Snakefile", "Makefile", "mkdocs.yml", ".ci")  # fmt: skip
+SCOPE = ("README.md", "CHANGELOG.md", "CITATION.cff", "LICENSE", "docs", "src", "config",
+         "tests", "benchmarks", "envs", "scripts", "workflow", "Snakefile", "Makefile",
+         "mkdocs.yml", ".ci")  # fmt: skip
 SELF = Path(__file__).resolve()
 
 # Each pattern is case-insensitive; the name says what it catches.
@@ -53,11 +54,22 @@ def files_in_scope() -> list[Path]:
             and p.resolve() != SELF]  # fmt: skip
 
 
+# what continues a sentence on the next line: indentation and comment or quote markers
+_CONTINUATION = re.compile(r"^\s*(?:#+|//|\*|>|\"\"\"|\'\'\')?\s*")
+
+
 def hits(text: str) -> list[tuple[int, str, str]]:
-    """(line number, what was found, the line) for every matching line of ``text``."""
+    """(line number, what was found, the line) for every matching line of ``text``, and for
+    a line whose words run on into the next ("issue" at the end of one line, "15" at the
+    start of the next)."""
     found = []
-    for no, line in enumerate(text.splitlines(), 1):
+    lines = text.splitlines()
+    for no, line in enumerate(lines, 1):
         m = REGEX.search(line)
+        if not m and no < len(lines):
+            joined = line.rstrip() + " " + _CONTINUATION.sub("", lines[no], count=1)
+            m = next((j for j in REGEX.finditer(joined) if j.end() > len(line.rstrip())),
+                     None)
         if m:
             found.append((no, NAMES[int(m.lastgroup[1:])], line.strip()[:140]))
     return found
@@ -91,6 +103,8 @@ def test_no_process_words_or_machine_paths():
         "fall back to /work/shared",
         "export PYTHONPATH=/root/pulse/install/bin",
         'Path("/home/user/data")',
+        "one line naming the file, no traceback (issue\n15). Cases: a truncated file",
+        "# fixed in the last\n# session, by hand",
     ],
 )
 def test_the_patterns_catch_process_words(line):

@@ -1,6 +1,7 @@
-"""Damaged MIMIC-III files: one line naming the file, a non-zero exit, no traceback (issue
-15). Cases: a truncated .csv.gz (damage in the first block, and deep in a large file), an
-empty .csv.gz, a header-only table, garbage after the gzip stream."""
+"""Damaged MIMIC-III files: one line naming the file, a non-zero exit, no traceback.
+
+Cases: a truncated .csv.gz (damage in the first block, and deep in a large file), an empty
+.csv.gz, a header-only table, garbage after the gzip stream."""
 
 from __future__ import annotations
 
