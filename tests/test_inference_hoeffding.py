@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 from scipy.optimize import brentq
@@ -96,12 +98,39 @@ def test_type_one_error_of_hoeffding_below_alpha_by_simulation():
     assert (p <= alpha).mean() <= alpha
 
 
-def test_holm_and_by_via_statsmodels():
+def test_holm_and_by_known_answers():
     p = np.array([0.001, 0.01, 0.02, 0.5])
     # Holm: 0.001 <= .05/4, 0.01 <= .05/3, 0.02 <= .05/2, 0.5 > .05
     np.testing.assert_array_equal(correct(p, 0.05, "holm"), [True, True, True, False])
     np.testing.assert_array_equal(correct(p, 0.05, "bonferroni"), [True, True, False, False])
-    assert correct(p, 0.05, "by").sum() <= correct(p, 0.05, "none").sum()
+    # BY: c_4 = 25/12; thresholds k 0.05 / (4 c_4) = 0.006, 0.012, 0.018, 0.024
+    np.testing.assert_array_equal(correct(p, 0.05, "by"), [True, True, False, False])
+    # step-down stops at the first failure: 0.03 > .05/2 keeps 0.04 <= .05 unrejected
+    np.testing.assert_array_equal(correct([0.04, 0.03, 0.001], 0.05, "holm"),
+                                  [False, False, True])
     with pytest.raises(ValueError, match="unknown correction"):
         correct(p, 0.05, "bh")
+    with pytest.raises(ValueError, match="1 of 2 p-values are NaN"):
+        correct([0.1, np.nan], 0.05)
     assert correct(np.array([]), 0.05).size == 0
+
+
+@pytest.mark.parametrize("method,name", [("holm", "holm"), ("by", "fdr_by"),
+                                         ("bonferroni", "bonferroni")])
+def test_corrections_equal_statsmodels(method, name):
+    """Decision for decision, on random families, families with ties (the lattice
+    p-values of the bootstrap) and p-values at a threshold exactly."""
+    from statsmodels.stats.multitest import multipletests
+
+    rng = np.random.default_rng(11)
+    families = [rng.random(m) ** rng.uniform(1, 8) for m in (1, 2, 5, 40, 500)]
+    families += [rng.integers(0, 50, 300) / 100 for _ in range(5)]  # ties
+    families += [0.05 / np.arange(8, 0, -1), np.full(7, 0.05 / 7), np.zeros(3), np.ones(3)]
+    gc.freeze()  # multipletests collects garbage on every call: keep pytest's heap out of it
+    try:
+        for p in families:
+            for alpha in (0.001, 0.05, 0.2):
+                want = multipletests(p, alpha=alpha, method=name)[0]
+                np.testing.assert_array_equal(correct(p, alpha, method), want)
+    finally:
+        gc.unfreeze()

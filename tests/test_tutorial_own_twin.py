@@ -92,5 +92,9 @@ def test_tutorial_commands_run_as_written(tmp_path):
                             "results.parquet")
     rejected = wrong[wrong["rejected"]]
     assert len(rejected) > 0 and set(rejected["outcome"]) == {"HR"}
+    # naming the two files built the wrong twin's outputs only, as the page says
+    assert (work / "results" / "table-wrong" / "twins" / "mine" / "figures" /
+            "pvalues.png").stat().st_size > 10_000
+    assert not (work / "results" / "table-wrong" / "twins" / "fitted").exists()
     assert "all checks passed" in outputs[[i for i, c in enumerate(commands(PAGE.read_text()))
                                            if "--config wrong.yaml" in c][0]]

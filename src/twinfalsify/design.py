@@ -29,6 +29,7 @@ from twinfalsify.schema import (
     T_MAX,
     TIME,
     VASOPRESSOR,
+    WHOLE_SPACE,
     ContractError,
     to_array,
 )
@@ -36,7 +37,6 @@ from twinfalsify.schema import (
 log = logging.getLogger("twinfalsify")
 
 N_DOSE_BINS = 5
-WHOLE_SPACE = -1  # B-set code meaning "no restriction" (Manski hypotheses)
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # pandas is imported where a table is read: a twin's protocol needs none
+    import pandas as pd
 
 T_MAX = 4  # hourly steps after t = 0 (docs/explanation/method.md: T = 4)
 
@@ -20,6 +23,7 @@ TIME = "t"
 IV_FLUID = "iv_fluid"  # mL/h during hour t -> t+1
 VASOPRESSOR = "vasopressor"  # norepinephrine-equivalent ug/kg/min during hour t -> t+1
 DOSES = (IV_FLUID, VASOPRESSOR)
+WHOLE_SPACE = -1  # B-set code meaning "no restriction" (Manski hypotheses)
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,8 @@ def validate_trajectories(
     feature finite and inside its plausible range, doses finite and >= 0 for
     t < t_max (the dose in the last row is never used and may be missing).
     """
+    import pandas as pd
+
     where = _where(source)
     require_columns(df, TRAJECTORY_COLUMNS, source)
     if df.empty:

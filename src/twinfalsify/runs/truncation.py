@@ -17,8 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from twinfalsify.design import WHOLE_SPACE
-from twinfalsify.schema import FEATURES
+from twinfalsify.schema import FEATURES, WHOLE_SPACE
 
 OPS = (">", "<=", "any")  # "any": the bin is the whole space (always holds)
 Box = tuple[str, str, float]  # (feature, op, threshold)
