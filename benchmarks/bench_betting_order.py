@@ -106,8 +106,8 @@ def _twin_samples(cfg: dict, st, name: str):
     runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
                       for k in range(len(st.plan.shards))], ignore_index=True)
     nodes = tp.load_nodes(runs, st.plan, st.x0)
-    tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
-    return bounds.hypothesis_samples(st.hyps, st.obs, tv), nf
+    side = bounds.twin_runs(st.hyps, nodes, st.states)  # failed runs keep their places
+    return bounds.hypothesis_samples(st.hyps, st.obs, side), side.n_failed
 
 
 def _decisions(cfg: dict, st, name: str, testing: dict) -> tuple[pd.Series, float]:

@@ -21,7 +21,8 @@ def main(sm):
     states = StateBins.from_json(read_json(sm.input.bins))
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
     nodes = load_nodes(read_parquet(sm.input.runs, "twin runs"), plan, x0)
-    twin, n_failed = bounds.twin_side(hyps, nodes, states)
+    twin = bounds.twin_runs(hyps, nodes, states)  # failed runs keep their places
+    n_failed = twin.n_failed
     samples = bounds.hypothesis_samples(hyps, obs, twin)
     cfg = sm.params.testing
     results = run_tests(

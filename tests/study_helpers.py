@@ -74,5 +74,5 @@ def twin_samples(study: Study, twin):
         ignore_index=True,
     )
     nodes = tp.load_nodes(runs, study.plan, study.x0)
-    twin_vals, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
-    return bounds.hypothesis_samples(study.hyps, study.obs, twin_vals), n_failed
+    side = bounds.twin_runs(study.hyps, nodes, study.states)
+    return bounds.hypothesis_samples(study.hyps, study.obs, side), side.n_failed

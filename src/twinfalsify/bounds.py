@@ -142,19 +142,41 @@ def read_observational_side(
     return hyps, obs
 
 
+@dataclass(frozen=True)
+class TwinSide:
+    """The twin side of every hypothesis: outcomes, failures and the runs they come from."""
+
+    values: Ragged  # raw outcomes of the entering ok runs, in the plan's run order
+    n_failed: np.ndarray  # (H,) failed runs that could have entered
+    run: Ragged  # aligned with ``values``: each entering run's index in the plan
+    failed_run: Ragged  # the failed runs' plan indices (group sizes = n_failed)
+
+
 def twin_side(
     hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
 ) -> tuple[Ragged, np.ndarray]:
-    """(raw twin outcomes of entering ok runs, n_failed per hypothesis).
+    """(raw twin outcomes of entering ok runs, n_failed per hypothesis): :func:`twin_runs`
+    without the run indices."""
+    side = twin_runs(hyps, nodes, states, t_max)
+    return side.values, side.n_failed
+
+
+def twin_runs(
+    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+) -> TwinSide:
+    """Entering ok runs (outcome and plan index) and failed runs (plan index) per hypothesis.
 
     A run whose path a_1:1 .. a_1:t has a failed node cannot be evaluated; it is
     left out of the twin sample and counted in n_failed, unless it could not
     have entered whatever the twin did: X_0 outside B_0, or a completed hour
-    s (before the failure) outside B_s.
+    s (before the failure) outside B_s. The plan indices place each failed run in the
+    data order of the betting test (``inference.failures``).
     """
     h_total = len(hyps)
     m = nodes.x0.shape[0]
     groups: list[np.ndarray] = [np.zeros(0)] * h_total
+    run_groups: list[np.ndarray] = [np.zeros(0)] * h_total
+    fail_groups: list[np.ndarray] = [np.zeros(0)] * h_total
     n_failed = np.zeros(h_total, dtype=np.int64)
     t_h = hyps["t"].to_numpy(np.int64)
     b_pad = padded(hyps, "bins", t_max + 1)
@@ -184,18 +206,30 @@ def twin_side(
             # A failed run whose completed hours already left B_1:s cannot enter
             # whatever it would have done next: not counted as failed.
             left_b = (on_path[..., None] & ~np.isnan(vals) & ~ok_s).any(axis=1)
-            n_failed[hs] = (failed & in_b0 & ~left_b).sum(axis=1)
+            could = failed & in_b0 & ~left_b
+            n_failed[hs] = could.sum(axis=1)
+            fh, fi = np.nonzero(could)
+            fcuts = np.searchsorted(fh, np.arange(1, len(hs)))
+            for j, r in enumerate(np.split(fi, fcuts)):
+                fail_groups[hs[j]] = r
             last = vals[np.arange(len(hs)), t_h[hs] - 1, :]  # (h, m)
             hh, ii = np.nonzero(enter)
             cuts = np.searchsorted(hh, np.arange(1, len(hs)))
-            for j, v in enumerate(np.split(last[hh, ii], cuts)):
+            for j, (v, r) in enumerate(zip(np.split(last[hh, ii], cuts), np.split(ii, cuts),
+                                           strict=True)):
                 groups[hs[j]] = v
-    return Ragged.from_groups(groups), n_failed
+                run_groups[hs[j]] = r
+    return TwinSide(Ragged.from_groups(groups), n_failed, Ragged.from_groups(run_groups),
+                    Ragged.from_groups(fail_groups))
 
 
 def hypothesis_samples(
-    hyps: pd.DataFrame, obs: ObservationalSide, twin: Ragged
+    hyps: pd.DataFrame, obs: ObservationalSide, twin: Ragged | TwinSide
 ) -> HypothesisSamples:
+    """Both sides as the tests read them; a :class:`TwinSide` also places the failed runs."""
+    runs = twin if isinstance(twin, TwinSide) else None
+    if runs is not None:
+        twin = runs.values
     return HypothesisSamples(
         y_lo=hyps["y_lo"].to_numpy(float),
         y_up=hyps["y_up"].to_numpy(float),
@@ -203,4 +237,6 @@ def hypothesis_samples(
         follow=obs.follow,
         twin=twin,
         follow_pos=obs.follow_pos,
+        twin_run=None if runs is None else runs.run,
+        failed_run=None if runs is None else runs.failed_run,
     )

@@ -42,28 +42,29 @@ K+_lo(Q_lo) >= 2/alpha, probability <= alpha/2) or < Q_twin (then K-_twin(Q_twin
 
 Order ("plugin" bets, the default). The bound depends on the order of the sample; the
 argument above needs only that the sequence be i.i.d., i.e. that the order not depend on the
-values. ``order: data`` (default) takes it from the data, with no seed:
+values. ``order: data`` (default) takes it from the data's content (``inference.order``):
 
-- observational side: the n entering trajectories listed by stay id (``samples.follow_pos``:
-  each follower's rank among them; the n - n_follow others carry the fill value), then
-  permuted by a fixed hash of (hypothesis key, position) (splitmix64, no seed). The D
-  patients are i.i.d. and a stay id carries no information on the outcomes (assumed, as for
-  any listing), so the entering ones in stay-id order are i.i.d. given n; a permutation that
-  depends on (hypothesis, n) only keeps them i.i.d., whatever the hash. The listing order of
-  the rows does not matter, only the stay ids.
-- twin side: the entering runs in the plan's X_0 order (X_0 drawn without replacement from D
-  in a random order fixed by the study's seed, part of the data like the twin's noise), i.e.
-  an i.i.d. sequence, permuted by the same fixed hash. Failed-run completions (``failures``)
-  are appended and interleaved by the hash.
+- observational side: the n entering trajectories listed by a keyed hash of their own
+  X_0:t, A_1:t (key: the recorded study seed; ``samples.follow_pos``: each follower's rank
+  among them; the n - n_follow others carry the fill value), then permuted by a fixed hash
+  of (hypothesis key, position) (splitmix64). The keyed hash is a uniformly random
+  permutation independent of the values (``inference.order``), and a permutation that
+  depends on (hypothesis, n) only keeps the sequence i.i.d. No stay id and no row order
+  enters.
+- twin side: the entering runs in the plan's X_0 order (D's stays listed by the same keyed
+  hash of their X_0, ``runs.plan``), permuted by the same fixed hash. Under
+  ``failed_runs: conservative`` each failed run stands at its own place in that order with
+  its worst case (:func:`worst_twin_sides`; why it is valid: ``inference.failures``).
 
-Hence a p-value is a function of the data (values and stay ids, run order) only: the same
-data always give the same p-value, and no seed can change a decision. It is not a symmetric
-function of the values (another stay numbering would give another order); ``bets: mixture``
-is, at a measured price in width (below). Without ``follow_pos`` (samples built by hand) the
-followers are taken as listed first and the hash permutation stands in for a random one.
-``order: seed``: a uniformly random permutation seeded by the config seed instead (the
-earlier behaviour; same seed, same p-values). ``orders`` K > 1 averages the terminal capital
-over K hash (or seeded) orders (an average of e-values is an e-value, Markov).
+Hence a p-value is a function of the data's values and the recorded seed only: renumbering
+the stays or reordering the input rows changes no order (p-values can differ in the last
+bits, as sums run over rows in another order), and another seed is another valid
+randomisation. ``bets: mixture`` is order-free, at a measured price in width (below).
+Without ``follow_pos`` (samples built by hand) the followers are taken as listed first and
+the hash permutation stands in for a random one. ``order: seed``: a uniformly random
+permutation of the listing seeded by the config seed instead. ``orders`` K > 1 averages the
+terminal capital over K hash (or seeded) orders (an average of e-values is an e-value,
+Markov).
 
 Why not an order-free default. An order-free (symmetric) p-value cannot use the running
 maximum over t, which depends on the order, so it rests on the terminal capital. Measured
@@ -286,8 +287,7 @@ def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int
     the group): within a group the order is that of i.i.d.-like uniform keys, i.e. a
     uniformly random permutation, independent of the data. Because U depends on the
     hypothesis' own key and the position only, a hypothesis gets the same order whatever
-    other hypotheses are tested with it, and values appended at the end (failed-run
-    completions) leave the relative order of the others unchanged. ``seed`` None: a fixed
+    other hypotheses are tested with it. ``seed`` None: a fixed
     hash domain instead of a seed (the data order, module doc): the permutation is then a
     fixed function of (hypothesis key, copy, group size), so applied to a sequence that is
     already i.i.d. it leaves it i.i.d. whatever the hash.
@@ -317,7 +317,11 @@ def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.nda
     t = HypothesisSamples(np.tile(samples.y_lo, k), np.tile(samples.y_up, k),
                           np.tile(samples.n, k), tile_r(samples.follow), tile_r(samples.twin),
                           keys=np.tile(samples.hyp_keys, k),
-                          follow_pos=None if fp is None else tile_r(fp))
+                          follow_pos=None if fp is None else tile_r(fp),
+                          twin_run=None if samples.twin_run is None
+                          else tile_r(samples.twin_run),
+                          failed_run=None if samples.failed_run is None
+                          else tile_r(samples.failed_run))
     return t, np.repeat(np.arange(k), len(samples))
 
 
@@ -339,7 +343,7 @@ def ordered_sides(
     """(Y_lo, Y_up, twin) rescaled to [0, 1], in data or seeded random order, with their bets.
 
     The observational sample is materialised here (``order`` "data" with
-    ``samples.follow_pos``: every entering trajectory at its stay-id position, followers'
+    ``samples.follow_pos``: every entering trajectory at its content-keyed position, followers'
     values and n - n_follow fill values; otherwise followers, then fill values) because
     every position carries its own bet; Y_lo and Y_up share the order. That sequence is
     then permuted by a hash of (seed, side, hypothesis key, copy, position)
@@ -373,7 +377,7 @@ def ordered_sides(
             fsl = slice(follow.offsets[h0], follow.offsets[h1])
             fv = follow.values[fsl]
             fg = np.repeat(np.arange(h1 - h0), nf[h0:h1])
-            if use_pos:  # each follower at its stay-id position among the entering ones
+            if use_pos:  # each follower at its content-keyed position among the entering ones
                 at = o[:-1][fg] + samples.follow_pos.values[fsl].astype(np.int64)
                 is_f = np.zeros(len(gid), dtype=bool)
                 is_f[at] = True
@@ -413,6 +417,74 @@ def ordered_sides(
     k = max(int(orders), 1)
     return (OrderedSide(lo.x, lo.lam, lo.offsets, k), OrderedSide(up.x, up.lam, up.offsets, k),
             OrderedSide(tw.x, tw.lam, tw.offsets, k))
+
+
+def twin_candidates(samples: HypothesisSamples) -> tuple[Ragged, np.ndarray]:
+    """The twin runs that entered or failed, per hypothesis, in the plan's run order.
+
+    (values rescaled to [0, 1] with NaN at failed runs, flat bool ``failed``). Needs
+    ``samples.twin_run`` / ``failed_run`` (``bounds.twin_runs``).
+    """
+    if samples.twin_run is None:
+        raise ValueError("betting: failed runs need their places (twin_run, failed_run)")
+    tw, fr, tr = samples.twin_f, samples.failed_run, samples.twin_run
+    gid = np.concatenate([tw.group_ids(), fr.group_ids()])
+    run = np.concatenate([tr.values, fr.values])
+    failed = np.concatenate([np.zeros(len(tw.values), bool), np.ones(len(fr.values), bool)])
+    g = tw.group_ids()
+    x = (tw.values - samples.y_lo[g]) / samples.width[g]
+    x = np.concatenate([x, np.full(len(fr.values), np.nan)])
+    order = np.lexsort((run, gid))
+    if np.any((np.diff(run[order]) == 0) & (np.diff(gid[order]) == 0)):
+        raise ValueError("betting: a twin run is listed twice (twin_run, failed_run)")
+    sizes = tw.sizes + fr.sizes
+    return Ragged(x[order], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)), \
+        failed[order]
+
+
+def worst_twin_sides(
+    samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, orders: int = 1,
+    order: str = "seed",
+) -> tuple[OrderedSide, OrderedSide]:
+    """Twin sides for H_lo and H_up with each failed run's worst case at its own place.
+
+    The sequence is every run that entered or failed, in the plan's run order, permuted by
+    the same hash as :func:`ordered_sides` (over its size n_c = nhat + F). Bets are the
+    plug-in bets of the successful runs only, tuned for n_c: a failed run gets the bet the
+    next successful run would get (it reads only successful values before it). A failed run
+    enters the H_lo side as x = 1 (the K- factor 1 - lambda (1 - m), the least any outcome
+    or not entering can give) and the H_up side as x = 0. Without failed runs this is
+    :func:`ordered_sides`' twin side. Validity: ``inference.failures`` module doc.
+    """
+    if order not in ORDER_KINDS:
+        raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
+    hseed = None if order == "data" else seed
+    h, _, d0 = _checked(samples, delta0)
+    copy = np.zeros(h, np.int64)
+    if orders > 1:
+        samples, copy = _tile(samples, int(orders))
+        d0 = np.tile(d0, int(orders))
+    cand, failed = twin_candidates(samples)
+    sizes = cand.sizes
+    perm = _order_keys(sizes, samples.hyp_keys, copy, hseed, 2)
+    x, failed = cand.values[perm], failed[perm]
+    gid = cand.group_ids()
+    # the successful subsequence with one extra slot per group (the bet after the last one)
+    ok = ~failed
+    n_ok = np.bincount(gid[ok], minlength=len(sizes))
+    offs_ext = np.concatenate([[0], np.cumsum(n_ok + 1)]).astype(np.int64)
+    x_ext = np.full(offs_ext[-1], 0.5)
+    lay = _layout(offs_ext)
+    slot = offs_ext[:-1][gid] + (_segment_cumsum(ok.astype(float), cand.offsets, gid)
+                                 - ok).astype(np.int64)  # successful runs before each
+    x_ext[slot[ok]] = x[ok]
+    _, prev = running_moments(x_ext, offs_ext, lay)
+    with np.errstate(divide="ignore"):
+        k = 2.0 * np.log(1.0 / d0) / sizes  # tuned for n_c
+    lam = np.sqrt(k[gid] / prev[slot])
+    copies = max(int(orders), 1)
+    return (OrderedSide(np.where(failed, 1.0, x), lam, cand.offsets, copies),
+            OrderedSide(np.where(failed, 0.0, x), lam, cand.offsets, copies))
 
 
 def _check_grid(grid: int, ratio: float) -> None:
@@ -541,6 +613,9 @@ def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
         keys=samples.hyp_keys[keep],
         follow_pos=None if samples.follow_pos is None else _ragged_subset(samples.follow_pos,
                                                                           keep),
+        twin_run=None if samples.twin_run is None else _ragged_subset(samples.twin_run, keep),
+        failed_run=None if samples.failed_run is None else _ragged_subset(samples.failed_run,
+                                                                          keep),
     )
 
 
@@ -574,6 +649,15 @@ class Bets:
             return mixture_sides(samples, delta0, self.grid, self.ratio)
         return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
                              order=self.order)
+
+    def twin_sides(self, samples: HypothesisSamples, delta0: float | np.ndarray, seed: int,
+                   tw: OrderedSide) -> tuple[OrderedSide, OrderedSide]:
+        """The twin sides H_lo and H_up are tested on: ``tw`` itself, or with failed runs
+        at their places (:func:`worst_twin_sides`, plug-in bets)."""
+        if self.kind != "plugin" or not samples.has_failed_places:
+            return tw, tw
+        return worst_twin_sides(samples, delta0, seed=seed, orders=self.orders,
+                                order=self.order)
 
 
 def make_bets(bets: str = "plugin", orders: int | None = None,
@@ -657,7 +741,8 @@ def betting_test(
     if not 0 < alpha0 < 1:
         raise ValueError(f"betting: tune_alpha must be in (0, 1), got {alpha0}")
     sub = samples if ok.all() else _subset(samples, ok)
-    size = how.copies * (sub.n + sub.nhat)
+    nc = sub.nhat if sub.failed_run is None else sub.nhat + sub.failed_run.sizes
+    size = how.copies * (sub.n + nc)
     cum = np.cumsum(size)
     cuts = np.unique(np.searchsorted(cum, np.arange(_CHUNK_ELEMENTS, cum[-1], _CHUNK_ELEMENTS)))
     cuts = cuts[(cuts > 0) & (cuts < len(sub))]
@@ -666,13 +751,14 @@ def betting_test(
     for idx in np.split(np.arange(len(sub)), cuts):
         part = sub if len(idx) == len(sub) else sub.take(idx)
         lo, up, tw = how.sides(part, alpha0 / 2, seed, c)
+        tw_lo, tw_up = how.twin_sides(part, alpha0 / 2, seed, tw)
         r = part.width
         q_lo = (part.q_lo_hat - part.y_lo) / r
         q_up = (part.q_up_hat - part.y_lo) / r
         q_tw = (part.q_twin_hat - part.y_lo) / r
         with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
-            f_lo = pool.submit(_crossing, lo, tw, 0.5 * (q_lo + q_tw), rmax, c, tol, max_iter)
-            f_up = pool.submit(_crossing, tw, up, 0.5 * (q_up + q_tw), rmax, c, tol, max_iter)
+            f_lo = pool.submit(_crossing, lo, tw_lo, 0.5 * (q_lo + q_tw), rmax, c, tol, max_iter)
+            f_up = pool.submit(_crossing, tw_up, up, 0.5 * (q_up + q_tw), rmax, c, tol, max_iter)
             k_lo[idx], k_up[idx] = f_lo.result(), f_up.result()
     p_lo[ok] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
     p_up[ok] = np.minimum(1.0, 2.0 * np.exp(-k_up))

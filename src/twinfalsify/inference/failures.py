@@ -27,8 +27,9 @@ per hypothesis as F = n_failed (``bounds.twin_side``).
   would produce; failures need not be at random).
 
 Evaluation. Hoeffding's p (``inference.hoeffding``) is a closed form, so it is
-evaluated at every k = 0..F and the maximum is exact. For any other method
-(bootstrap, betting, ... from ``inference.registry``) each k costs a full
+evaluated at every k = 0..F and the maximum is exact. For the betting test with plug-in bets
+(the default method) the order matters, and each failed run is placed where its run stands
+(below). For any other method (bootstrap, the betting grid mixture, ...) each k costs a full
 evaluation, so ``conservative_pvalues`` evaluates k = 0, k = F and the k that
 maximises the Hoeffding p-value (plus ``extra_points`` evenly spaced k) and
 takes the maximum. That maximum is always >= the drop p-value (k = 0 is
@@ -37,7 +38,36 @@ points: it does when p(k) is monotone in k (k = 0 or k = F: the usual case,
 adding y_up both moves the mean against rejection and narrows the interval)
 or follows Hoeffding's shape (Hoeffding-argmax); an interior peak elsewhere is
 possible in principle for resampling methods and would be missed. Pass
-``extra_points`` to search a grid when that matters.
+``extra_points`` to search a grid when that matters. These methods are symmetric in
+the twin sample, so where a completion stands does not matter to them.
+
+Failed runs in place (betting, plug-in bets; ``samples.failed_run`` from
+``bounds.twin_runs``). The running maximum of the capital depends on where each value
+stands, so completions appended after the successful runs would sit at places chosen by
+which runs failed, which may depend on the outcome. Instead the twin sequence is every run
+that entered or failed, in the plan's run order (the keyed X_0 order, ``inference.order``),
+permuted by the data order's hash over its size n_c = nhat + F (``betting.worst_twin_sides``).
+The bets are the plug-in bets of the successful runs only, tuned for n_c: each reads only
+the successful values before it, and a failed run gets the bet the next successful run would
+get. A failed run enters the H_lo side (K- of the twin) with x = 1 and the H_up side (K+)
+with x = 0. Why this is valid whatever the failed runs would have produced:
+
+- given n_c, the runs that entered or failed are i.i.d. (each run's X_0, outcome, entry
+  and failure are a function of its own X_0 and noise; the plan order is a random
+  permutation independent of them), and a fixed permutation keeps them so;
+- the true completion gives each failed run either no entry (factor 1) or an outcome
+  x in [0, 1] (factor 1 - b (x - m) >= 1 - b (1 - m) for K-, b >= 0, m <= 1). With the bets
+  above, which are predictable in this sequence, the capital K-_true of the true completion
+  is a test supermartingale under H_lo (the mean of an entering run's outcome is >= m), and
+  K-_cons <= K-_true at every time and every m, so max_t K-_cons <= max_t K-_true;
+- the union rule's crossing is monotone in the twin's capital, so p_cons >= p_true, and
+  p_true is valid by Ville's inequality. K+ mirrors it with x = 0.
+
+The reported p-value is max(p_cons, p_drop): >= a valid p-value, so valid, and never below
+the drop p-value. Without failed runs the sequence and bets are the drop test's (bit for
+bit). The same construction is the sequential mode's (``inference.sequential``). Tested:
+``tests/test_failed_places.py`` (placement, a brute-force loop, dominance over random
+completions, level under outcome-dependent failures).
 """
 
 from __future__ import annotations
@@ -144,17 +174,26 @@ def conservative_pvalues(
     f = np.asarray(n_failed, dtype=np.int64)
     if f.shape != (len(samples),) or (f < 0).any():
         raise ValueError(f"n_failed must be {len(samples)} non-negative counts")
+    placed = samples.failed_run is not None
+    if placed and not np.array_equal(samples.failed_run.sizes, f):
+        raise ValueError("n_failed does not match the failed runs' places (failed_run)")
+    in_place = placed and _places_failed_runs(method)
+    samples_drop = samples.without_failed()
     factor = hoeffding_factor(method)
     if factor is not None:
-        p_lo, p_up, _, _ = hoeffding_worst_k(samples, f, factor)
+        p_lo, p_up, _, _ = hoeffding_worst_k(samples_drop, f, factor)
         return p_lo, p_up
     method = _family_tuned(method, len(samples))
-    p0_lo, p0_up = base if base is not None else method(samples)
+    p0_lo, p0_up = base if base is not None else method(samples_drop)
     p_lo, p_up = np.asarray(p0_lo, float).copy(), np.asarray(p0_up, float).copy()
     idx = np.flatnonzero(f > 0)
     if idx.size == 0:
         return p_lo, p_up
-    sub = samples.take(idx)
+    if in_place:  # each failed run's worst case at its own place; >= drop by the max
+        c_lo, c_up = method(samples.take(idx))
+        p_lo[idx], p_up[idx] = np.maximum(p_lo[idx], c_lo), np.maximum(p_up[idx], c_up)
+        return p_lo, p_up
+    sub = samples_drop.take(idx)
     fs = f[idx]
     _, _, k_lo, k_up = hoeffding_worst_k(sub, fs)
     candidates_lo = [fs, k_lo]
@@ -182,6 +221,14 @@ def _family_tuned(method: Method, h: int) -> Method:
     return method
 
 
+def _places_failed_runs(method: Method) -> bool:
+    """True for the betting test with plug-in bets (it places failed runs, module doc)."""
+    if method is betting_test:
+        return True
+    return (isinstance(method, partial) and method.func is betting_test
+            and method.keywords.get("bets", "plugin") == "plugin")
+
+
 def _unique_rows(rows: list[np.ndarray]) -> list[np.ndarray]:
     out: list[np.ndarray] = []
     for r in rows:
@@ -199,7 +246,7 @@ def failure_pvalues(
 ) -> tuple[np.ndarray, np.ndarray]:
     """p-values under the chosen handling of failed runs (``MODES``)."""
     if mode == "drop":
-        return method(samples)
+        return method(samples.without_failed())
     if mode == "conservative":
         return conservative_pvalues(method, samples, n_failed, **kwargs)
     raise ValueError(f"testing.failed_runs: unknown mode {mode!r}; choose one of {MODES}")

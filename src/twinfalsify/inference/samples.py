@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -85,10 +85,17 @@ class HypothesisSamples:
     # failed-run completions). None: 0..H-1.
     keys: np.ndarray | None = None
     # (H groups, aligned with ``follow``) each follower's position among its hypothesis'
-    # n entering trajectories, listed by stay id (``bounds.observational_side``): where the
-    # betting test's data order puts it. None: unknown (followers are then taken as listed
+    # n entering trajectories in the content-keyed data order (``bounds.observational_side``):
+    # where the betting test's data order puts it. None: unknown (followers are then taken as listed
     # first; the data order is then only a fixed pseudo-random one, betting module doc).
     follow_pos: Ragged | None = None
+    # Failed twin runs at their places (``inference.failures``, ``bounds.twin_runs``):
+    # ``twin_run`` (aligned with ``twin``) is each entering run's index in the plan's run
+    # order, ``failed_run`` the plan indices of the failed runs that could have entered. The
+    # betting test then puts the worst case of each failed run at its own place in the data
+    # order. None: unknown (failed runs are then only counted, ``n_failed``).
+    twin_run: Ragged | None = None
+    failed_run: Ragged | None = None
 
     def __post_init__(self) -> None:
         h = len(self.y_lo)
@@ -104,6 +111,13 @@ class HypothesisSamples:
                     (fp.values < 0) | (fp.values >= np.repeat(self.n, fp.sizes))):
                 raise ValueError("HypothesisSamples: follow_pos must give every follower a "
                                  "position in 0..n-1 of its hypothesis")
+        if (self.twin_run is None) != (self.failed_run is None):
+            raise ValueError("HypothesisSamples: twin_run and failed_run go together")
+        if self.twin_run is not None and (
+                not np.array_equal(self.twin_run.sizes, self.twin.sizes)
+                or len(self.failed_run) != h):
+            raise ValueError("HypothesisSamples: twin_run must give every twin outcome its run "
+                             "and failed_run one group per hypothesis")
 
     def __len__(self) -> int:
         return len(self.y_lo)
@@ -114,6 +128,17 @@ class HypothesisSamples:
         if self.keys is None:
             return np.arange(len(self), dtype=np.int64)
         return np.asarray(self.keys, dtype=np.int64)
+
+    @property
+    def has_failed_places(self) -> bool:
+        """True when some failed run has a known place (``failed_run``)."""
+        return self.failed_run is not None and self.failed_run.offsets[-1] > 0
+
+    def without_failed(self) -> HypothesisSamples:
+        """The same samples without the failed runs' places (what ``drop`` tests)."""
+        if self.failed_run is None:
+            return self
+        return replace(self, twin_run=None, failed_run=None)
 
     @property
     def n_follow(self) -> np.ndarray:
@@ -192,6 +217,8 @@ class HypothesisSamples:
             twin=self.twin,
             keys=self.keys,
             follow_pos=self.follow_pos,
+            twin_run=self.twin_run,
+            failed_run=self.failed_run,
         )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:
@@ -204,4 +231,6 @@ class HypothesisSamples:
             twin=self.twin.take(index),
             keys=self.hyp_keys[index],
             follow_pos=None if self.follow_pos is None else self.follow_pos.take(index),
+            twin_run=None if self.twin_run is None else self.twin_run.take(index),
+            failed_run=None if self.failed_run is None else self.failed_run.take(index),
         )
