@@ -205,3 +205,42 @@ def test_level_under_outcome_dependent_failures(name, fail, draw):
     lo, hi = _clopper_pearson(k, reps)
     assert lo <= alpha and k / reps <= alpha, (name, k, reps, lo, hi)
     assert _clopper_pearson(int((p_drop <= alpha).sum()), reps)[0] > alpha, name
+
+
+def test_study_failures_are_placed_counted_and_never_below_drop():
+    """On a synthetic study whose twin loses 10 % of its node-runs: twin_runs' failed runs
+    are exactly the n_failed that twin_side counts, each entering or failed run appears
+    once, and the conservative betting p-values are >= the drop ones, strictly above for
+    some hypothesis, and equal wherever nothing failed."""
+    import io
+
+    from study_helpers import build_study
+
+    from twinfalsify import bounds
+    from twinfalsify.runs import plan as tp
+    from twinfalsify.runs.registry import make_twin
+
+    st = build_study(1500, 3, runs=300)
+    twin = make_twin("oracle", {"kind": "oracle"},
+                     {"source": {"kind": "synthetic", "synthetic": {"n_stays": 20}}})
+    runs = pd.concat([tp.run_shard(twin, st.plan, k, st.x0, st.actions, log=io.StringIO())
+                      for k in range(len(st.plan.shards))], ignore_index=True)
+    nodes = tp.load_nodes(runs, st.plan, st.x0)
+    rng = np.random.default_rng(0)
+    lost = rng.random(nodes.values.shape[:2]) < 0.1
+    nodes.values[lost] = np.nan
+    side = bounds.twin_runs(st.hyps, nodes, st.states)
+    vals, nf = bounds.twin_side(st.hyps, nodes, st.states)
+    np.testing.assert_array_equal(side.n_failed, nf)
+    np.testing.assert_array_equal(side.failed_run.sizes, nf)
+    np.testing.assert_array_equal(side.values.values, vals.values)
+    for h in range(len(st.hyps)):
+        both = np.concatenate([side.run.group(h), side.failed_run.group(h)])
+        assert len(np.unique(both)) == len(both)
+    s = bounds.hypothesis_samples(st.hyps, st.obs, side)
+    cons = failure_pvalues(betting_test, s, nf, "conservative")
+    drop = failure_pvalues(betting_test, s, nf, "drop")
+    for c, d in zip(cons, drop, strict=True):
+        assert np.all(c >= d)
+        assert np.array_equal(c[nf == 0], d[nf == 0])
+        assert np.any(c[nf > 0] > d[nf > 0])
