@@ -21,6 +21,8 @@ SCOPE = ("README.md", "CHANGELOG.md", "CITATION.cff", "LICENSE", "docs", "src", 
          "tests", "benchmarks", "envs", "scripts", "workflow", "Snakefile", "Makefile",
          "mkdocs.yml", ".ci")  # fmt: skip
 SELF = Path(__file__).resolve()
+# third-party files served with the docs site (KaTeX from npm): not the project's words
+VENDORED = ("docs/assets/vendor/",)
 
 # Each pattern is case-insensitive; the name says what it catches.
 PATTERNS: dict[str, str] = {
@@ -36,7 +38,7 @@ PATTERNS: dict[str, str] = {
 REGEX = re.compile("|".join(f"(?P<p{i}>{p})" for i, p in enumerate(PATTERNS.values())),
                    re.IGNORECASE)  # fmt: skip
 NAMES = list(PATTERNS)
-BINARY_SUFFIXES = {".png", ".pdf", ".parquet", ".gz", ".pbb", ".jar", ".xlsx", ".pyc"}
+BINARY_SUFFIXES = {".png", ".pdf", ".parquet", ".gz", ".pbb", ".jar", ".xlsx", ".pyc", ".woff2"}
 
 
 def files_in_scope() -> list[Path]:
@@ -51,7 +53,8 @@ def files_in_scope() -> list[Path]:
             p = ROOT / s
             paths += [p] if p.is_file() else [q for q in p.rglob("*") if q.is_file()]
     return [p for p in paths if p.is_file() and p.suffix not in BINARY_SUFFIXES
-            and p.resolve() != SELF]  # fmt: skip
+            and p.resolve() != SELF
+            and not p.relative_to(ROOT).as_posix().startswith(VENDORED)]  # fmt: skip
 
 
 # what continues a sentence on the next line: indentation and comment or quote markers
