@@ -38,6 +38,8 @@ PAGES = {
     "explanation/method.md": 20,
     "explanation/calibration.md": 5,
     "explanation/implementation.md": 5,
+    "how-to/twins.md": 5,
+    "how-to/mimic3.md": 1,
 }
 
 _FENCE = re.compile(r"^(```|~~~).*?^\1[ \t]*$", re.MULTILINE | re.DOTALL)
