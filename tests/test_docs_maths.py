@@ -173,7 +173,7 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.mark.parametrize("page", sorted(PAGES))
-def test_formulas_render_in_a_browser(page, site, browser, tmp_path):
+def test_formulas_render_in_a_browser(page, browser, site, tmp_path):
     expected = formulas_in_markdown((DOCS / page).read_text())
     assert expected >= PAGES[page], f"{page} has {expected} formulas, fewer than {PAGES[page]}"
     html = site / page.removesuffix(".md") / "index.html"
