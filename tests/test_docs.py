@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import built_once
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,17 +54,33 @@ def test_config_reference_names_every_schema_key_with_its_default_and_limits():
     assert "[explanation/sequential.md](../explanation/sequential.md)" in page
 
 
-def test_site_builds_in_strict_mode(tmp_path):
+def require_mkdocs() -> None:
     if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("material") is None:
         pytest.skip("mkdocs / mkdocs-material not installed (pip install -e '.[dev]')")
+
+
+def build_site(dest: Path) -> None:
+    """``mkdocs build --strict`` of the checkout into ``dest`` (raises with mkdocs' output on
+    a warning). Built once per test run (``built_once``): ``tests/test_docs_maths.py`` reads
+    the same site in a browser."""
     out = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(dest)],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
         env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
     assert out.returncode == 0, out.stderr[-4000:]
-    assert (tmp_path / "site" / "reference" / "config" / "index.html").is_file()
-    html = (tmp_path / "site" / "reference" / "config" / "index.html").read_text()
+
+
+def test_site_builds_in_strict_mode(tmp_path_factory):
+    require_mkdocs()
+    site = built_once(tmp_path_factory, "docs-site", build_site)
+    assert (site / "reference" / "config" / "index.html").is_file()
+    html = (site / "reference" / "config" / "index.html").read_text()
     assert "twin_runs.runs_per_sequence" in html
+    # the formulas' typesetter is served by the site itself (offline); no CDN, no web font
+    page = (site / "explanation" / "statistics" / "index.html").read_text()
+    assert "assets/vendor/katex/katex.min.js" in page
+    assert (site / "assets" / "vendor" / "katex" / "fonts" / "KaTeX_Main-Regular.woff2").is_file()
+    assert "fonts.googleapis.com" not in page and "cdn.jsdelivr" not in page
 
 
 def test_strict_build_fails_on_a_broken_link(tmp_path):

@@ -11,7 +11,7 @@ with the predictable plug-in bet tuned for a fixed sample size n (WSR 2024, Sec.
 and Remark "fixed-n"): lambda_i = sqrt(2 log(1/delta0) / (n sigma2_{i-1})),
 mu_i = (1/2 + sum_{j<=i} x_j) / (i + 1), sigma2_i = (1/4 + sum_{j<=i} (x_j - mu_j)^2) / (i + 1),
 sigma2_0 = 1/4, c = 0.9 (WSR use 1/2 or 3/4; any c < 1 is valid, 0.9 is
-tighter at the small levels Holm needs, measured in docs/explanation/statistics.md).
+tighter at the small levels Holm needs, measured in docs/reference/benchmarks.md).
 As in WSR's
 Theorem 3 the bet is truncated only at c/m (c/(1-m)), never at c itself: near a
 boundary (m small for K+) bets above 1 are allowed and still keep every factor
@@ -68,7 +68,7 @@ Markov).
 
 Why not an order-free default. An order-free (symmetric) p-value cannot use the running
 maximum over t, which depends on the order, so it rests on the terminal capital. Measured
-(``benchmarks/bench_betting_wsr.py``, docs/explanation/statistics.md): even the constant bet
+(``benchmarks/bench_betting_wsr.py``, docs/reference/benchmarks.md): even the constant bet
 tuned at the TRUE variance, the best any bet tuned on independent data (D0, a pilot) can
 approach, is wider than WSR's running-maximum interval (1.10-1.19x at alpha = 0.05, n >= 50);
 the grid mixture, 16 averaged orders, D0-tuned and pilot-tuned constant bets are as wide or
@@ -94,7 +94,7 @@ place of max_t K. The price of the fixed grid, when the best constant bet lies i
 grid [lambda_min, lambda_min r^(J-1)]: log J nats (J = 6: 1.8) and a discretisation of the
 best bet by at most a factor sqrt(r); a best bet outside the grid (variance below
 1/(4 r^(2(J-1))), or a gap needing a bet below lambda_min) costs more, without bound.
-Measured in docs/explanation/statistics.md.
+Measured in docs/reference/benchmarks.md.
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
 Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are

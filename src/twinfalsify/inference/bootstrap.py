@@ -31,7 +31,7 @@ The authors' code instead scans a 500-point alpha grid with level alpha (not
 alpha/2) on each side and numpy's interpolated quantiles: ``variant="authors_grid"``
 reproduces that reading for comparison only.
 
-Resampling uses the compact form of the observational sample (docs/explanation/method.md): a
+Resampling uses the compact form of the observational sample (docs/explanation/implementation.md): a
 resample of n values of Y_lo picks K ~ Binomial(n, n_follow/n) followers (drawn
 uniformly with replacement among them) and n - K copies of y_lo; the same draw
 gives the Y_up resample with y_up copies. This is exactly the distribution of a

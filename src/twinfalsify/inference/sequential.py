@@ -96,7 +96,8 @@ HOLM_AWARE = ("holm", "bonferroni")  # corrections whose thresholds Holm-aware f
 COMBINES = ("union",)  # how the observational and twin capitals combine (doc)
 # The product rule (inf_m G_lo(m) K-_twin(m) >= 1/a) was withdrawn: its proof needs a twin
 # sample independent of the observational one, and with shared X_0 it exceeded its level
-# (docs/explanation/sequential.md, "The product rule (withdrawn)").
+# (CHANGELOG.md, 0.2.0, "Adaptive twin runs"; the union rule's proof is in
+# docs/explanation/sequential.md, "Why the family-wise error stays controlled").
 PRODUCT_REMOVED = ("combine: product was removed: it can exceed its level when the twin's X_0 "
                    "come from the observational sample (measured 0.0020 at a = 0.001); "
                    "use combine: union")
@@ -476,7 +477,7 @@ class SequentialState:
         7:8-17). Without it the stop is overconfident early on (r >> n) and forgoes many
         rejections with small batches (``test_curtailment_forgoes_few_rejections_the_full_
         budget_makes``). A heuristic: it never affects validity (stopping only forgoes
-        power), and its power cost is measured (docs/explanation/sequential.md).
+        power), and its power cost is measured (docs/reference/benchmarks.md, "Adaptive twin runs").
         """
         gid = np.repeat(np.arange(len(act)), tw.succ.sizes)
         seen_b0 = runs.in_b0[act][:, :j].sum(axis=1)
