@@ -50,9 +50,9 @@ docs: $(STAMP)
 config-reference: $(STAMP)
 	$(BIN)/python -m twinfalsify.config_reference
 
-## Print the README's rejection table from the default study's results (after make reproduce).
+## Write the README's rejection table from the default study's results (after make reproduce).
 readme-table: $(STAMP)
-	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY)
+	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY) --config $(CONFIG) --readme README.md
 
 clean:
 	rm -rf results .snakemake

@@ -51,3 +51,19 @@ def test_strict_build_fails_on_a_broken_link(tmp_path):
         env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
     assert out.returncode != 0
     assert "no-such-page.md" in out.stderr
+
+
+def test_every_relative_link_of_the_readme_resolves_in_a_clone():
+    """A reader of the README on a clone (or on the forge) follows links to files, not to the
+    built site: each relative link names a file or folder of the checkout that git tracks."""
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    links = re.findall(r"\]\(([^)\s]+)\)", text)
+    local = [u.split("#")[0] for u in links if not re.match(r"[a-z]+:", u) and u.split("#")[0]]
+    assert "docs/reference/config.md" in local and "docs/reference/outputs.md" in local
+    tracked = set(subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True,
+                                 check=True).stdout.split())  # fmt: skip
+    dirs = {str(Path(p).parent) for p in tracked}
+    for path in local:
+        assert path in tracked or path.rstrip("/") in dirs, f"README links to {path}: not in git"
