@@ -348,6 +348,7 @@ def test_sensitivity_small_multiples_one_panel_per_outcome_and_distinct_colours(
             assert len(lines) == 1, (ax.get_title(), m, k)
             assert list(lines[0].get_ydata()) == list(want), (ax.get_title(), m, k)
         assert ax.get_ylim()[0] <= 0 < 1 <= ax.get_ylim()[1]
+        assert all(ln.get_ydata().max() <= ax.get_ylim()[1] for ln in ax.get_lines())
     rgb = [np.array(matplotlib.colors.to_rgb(entries[f"{m}, causal"].get_color())) for m in "ab"]
     assert np.abs(rgb[0] - rgb[1]).sum() > 0.5  # not near-identical
 

@@ -416,15 +416,16 @@ def sensitivity_lines(sweep: pd.DataFrame, twin: str | None = None) -> plt.Figur
     kinds += sorted(set(sweep["kind"]) - set(kinds))
     for ax, panel in zip(axes.flat, panels, strict=False):
         sub = sweep if panel == "all outcomes" else sweep[sweep["group"] == panel]
+        top = 1.0
         for (m, k), part in sub.groupby(["method", "kind"], sort=False):
             tot = part.groupby("delta")["n_rejected"].sum()
+            top = max(top, float(tot.max()))
             ax.plot(tot.index, tot.to_numpy(), color=colours[m], ls=styles.get(k, ":"),
                     marker="o", ms=3, lw=1.4 if panel == "all outcomes" else 1.1)  # fmt: skip
         ax.set_title(panel, fontsize=9, fontweight="bold" if panel == "all outcomes" else None)
         ax.tick_params(labelsize=7)
         # counts: integer ticks from 0; a panel without rejections still spans 0..1
-        top = max(1.0, float(sub["n_rejected"].max()) if len(sub) else 1.0) * 1.08
-        ax.set_ylim(-0.04 * top, top)
+        ax.set_ylim(-0.04 * top * 1.08, top * 1.08)
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
