@@ -29,7 +29,9 @@ def test_site_builds_in_strict_mode(tmp_path):
     assert out.returncode == 0, out.stderr[-4000:]
     assert (tmp_path / "site" / "reference" / "config" / "index.html").is_file()
     html = (tmp_path / "site" / "reference" / "config" / "index.html").read_text()
-    assert "twin_runs.runs_per_sequence" in html
+    # the committed page is served, its key names in code that does not wrap
+    assert '<code style="white-space: nowrap">runs_per_sequence</code>' in html
+    assert 'id="betting"' in html and '<code style="white-space: nowrap">n_resamples</code>' in html
 
 
 def test_strict_build_fails_on_a_broken_link(tmp_path):
