@@ -8,7 +8,7 @@ CONFIG ?= config/config.yaml
 STUDY = $(shell sed -n 's/^study: *\([A-Za-z0-9._-]*\).*/\1/p' $(CONFIG))
 STAMP := $(VENV)/.installed
 
-.PHONY: setup reproduce test test-fast lint report docs clean
+.PHONY: setup reproduce test test-fast lint report docs config-reference readme-table clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,14 @@ lint: $(STAMP)
 ## Build the documentation site into site/ (strict: a broken link fails).
 docs: $(STAMP)
 	$(BIN)/mkdocs build --strict
+
+## Regenerate docs/reference/config.md from the config schema and the methods' option specs.
+config-reference: $(STAMP)
+	$(BIN)/python -m twinfalsify.config_reference
+
+## Write the README's rejection table from the default study's results (after make reproduce).
+readme-table: $(STAMP)
+	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY) --config $(CONFIG) --readme README.md
 
 clean:
 	rm -rf results .snakemake

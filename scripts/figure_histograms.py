@@ -21,7 +21,9 @@ def main(sm):
                                 run_status=st.run_status)
         ids = [first, pick_hypothesis(st.results, rejected=False, exclude=(first,))]
     cases = [histogram_data(st, int(h), alpha=alpha) for h in ids]
-    save_all(outcome_histograms(cases), sm.output.png, sm.output.pdf)
+    methods = [str(m) for m in st.results["method"].unique()]  # "min p" is over these
+    fig = outcome_histograms(cases, twin=sm.wildcards.twin, methods=methods, alpha=alpha)
+    save_all(fig, sm.output.png, sm.output.pdf)
 
 
 run_rule(snakemake, main)  # noqa: F821

@@ -10,7 +10,7 @@ from twinfalsify.io import read_parquet, run_rule  # noqa: E402
 
 
 def main(sm):
-    fig = sample_size_histograms(read_parquet(sm.input[0], "results"))
+    fig = sample_size_histograms(read_parquet(sm.input[0], "results"), twin=sm.wildcards.twin)
     save_all(fig, sm.output.png, sm.output.pdf)
 
 

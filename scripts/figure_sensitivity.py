@@ -43,7 +43,7 @@ def main(sm):
     log.info("sensitivity sweep done in %.1f s", time.perf_counter() - t_start)
     table = pd.concat(parts, ignore_index=True)
     write_csv(table, sm.output.csv)
-    save_all(sensitivity_lines(table), sm.output.png, sm.output.pdf)
+    save_all(sensitivity_lines(table, twin=sm.wildcards.twin), sm.output.png, sm.output.pdf)
 
 
 run_rule(snakemake, main)  # noqa: F821

@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import matplotlib.colors
 import matplotlib.image as mpimg
 import numpy as np
 import pandas as pd
@@ -284,16 +285,21 @@ def test_pvalue_figures_mark_the_bootstrap_floor_and_keep_the_holm_line():
         ax = fig.axes[0]
         labels = [t.get_text() for t in ax.get_legend().get_texts()]
         assert any("5 at p = 1e-06: all resamples separated" in t for t in labels), labels
-        assert any(t.startswith("rejected after holm") for t in labels), labels
+        # the line says what it is: Holm's cut alpha / (m - k), m = 24 p-values, k = 5 rejected
+        assert any(t.startswith("Holm threshold, alpha = 0.05: 5 of 12 rejected")
+                   for t in labels), labels
         assert not ax.texts  # the note is a legend entry: nothing can hide under the legend
         ys = [ln.get_ydata()[0] for ln in ax.get_lines() if len(ln.get_ydata()) == 2]
-        assert any(np.isclose(y, 6.0) for y in ys)  # Holm / floor line at -log10(1e-6)
+        assert any(np.isclose(y, 6.0) for y in ys)  # floor line at -log10(1e-6)
+        assert any(np.isclose(y, -np.log10(0.05 / 19)) for y in ys)  # Holm's cut
         assert np.isfinite(ax.get_ylim()).all() and ax.get_ylim()[1] < 50
         # the legend sits above every p-value drawn (headroom), not over the boxes
         fig.canvas.draw()
         box = ax.get_legend().get_window_extent().transformed(ax.transData.inverted())
         assert box.y0 > -np.log10(res["p_value"].min())
-        assert fig.axes[1].get_legend() is None  # H_up: nothing rejected, nothing at the floor
+        # H_up: nothing rejected, nothing at the floor: only the threshold line
+        labels = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
+        assert labels == ["Holm threshold, alpha = 0.05: 0 of 12 rejected"]
 
 
 def _overlaps(fig, a, b) -> bool:
@@ -303,7 +309,8 @@ def _overlaps(fig, a, b) -> bool:
 
 def test_propensity_legend_is_outside_every_panel_and_titles_count(st):
     two = pd.concat([st.results, st.results.assign(method="other")], ignore_index=True)
-    fig = figures.propensity_scatter(two)
+    fig = figures.propensity_scatter(two, twin="biased")
+    assert fig.get_suptitle().startswith("twin biased: ")
     assert all(ax.get_legend() is None for ax in fig.axes)
     (leg,) = fig.legends
     assert [t.get_text() for t in leg.get_texts()] == ["not rejected", "rejected, either side"]
@@ -312,24 +319,38 @@ def test_propensity_legend_is_outside_every_panel_and_titles_count(st):
         m, k = ax.get_title().split(":")[0].split(", ")
         part = two[(two["method"] == m) & (two["kind"] == k) & (two["n"] > 0)]
         per = part.groupby("hyp_id")["rejected"].any()
-        assert ax.get_title().endswith(f"{int(per.sum())} of {len(per)} rejected")
+        assert ax.get_title().endswith(f"{int(per.sum())} of {len(per)} parameter sets rejected")
 
 
-def test_sensitivity_legend_names_every_outcome_line():
-    sweep = pd.DataFrame([(d, m, g, 10, max(0, 5 - int(10 * d)) + (g == "HR"), k)
+def test_sensitivity_small_multiples_one_panel_per_outcome_and_distinct_colours():
+    """A totals panel, then one panel per outcome whose lines are that outcome's counts; one
+    legend naming each (method, kind) line; methods in clearly different colours."""
+    sweep = pd.DataFrame([(d, m, g, 10, max(0, 5 - int(10 * d)) + (g == "HR") + (m == "b"), k)
                           for d in (0, 0.2, 0.5) for m in ("a", "b") for g in ("HR", "Sodium")
                           for k in ("causal", "manski")],
                          columns=["delta", "method", "group", "n_hypotheses", "n_rejected",
                                   "kind"])  # fmt: skip
-    fig = figures.sensitivity_lines(sweep)
+    fig = figures.sensitivity_lines(sweep, twin="fitted")
+    assert fig.get_suptitle().startswith("twin fitted: rejected hypotheses")
+    panels = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in panels] == ["all outcomes", "HR", "Sodium"]
     (leg,) = fig.legends
     entries = {t.get_text(): h for t, h in zip(leg.get_texts(), leg.legend_handles, strict=True)}
-    assert {"causal: total", "manski: total", "HR", "Sodium"} <= set(entries)
-    for ax in fig.axes:
+    assert set(entries) == {"a, causal", "a, manski", "b, causal", "b, manski"}
+    for ax in panels:
         assert not _overlaps(fig, leg, ax)
-        # every thin line has the colour of its outcome's legend entry
-        hr = [ln for ln in ax.get_lines() if list(ln.get_ydata()) == [6, 4, 1]]
-        assert hr and all(ln.get_color() == entries["HR"].get_color() for ln in hr)
+        sub = sweep if ax.get_title() == "all outcomes" else sweep[sweep["group"] == ax.get_title()]
+        for (m, k), part in sub.groupby(["method", "kind"]):
+            want = part.groupby("delta")["n_rejected"].sum().to_numpy()
+            key = entries[f"{m}, {k}"]
+            lines = [ln for ln in ax.get_lines() if ln.get_color() == key.get_color()
+                     and ln.get_linestyle() == key.get_linestyle()]  # fmt: skip
+            assert len(lines) == 1, (ax.get_title(), m, k)
+            assert list(lines[0].get_ydata()) == list(want), (ax.get_title(), m, k)
+        assert ax.get_ylim()[0] <= 0 < 1 <= ax.get_ylim()[1]
+        assert all(ln.get_ydata().max() <= ax.get_ylim()[1] for ln in ax.get_lines())
+    rgb = [np.array(matplotlib.colors.to_rgb(entries[f"{m}, causal"].get_color())) for m in "ab"]
+    assert np.abs(rgb[0] - rgb[1]).sum() > 0.5  # not near-identical
 
 
 def test_longitudinal_title_names_the_intervals_and_each_methods_rejections():
@@ -388,3 +409,62 @@ def test_a_figure_without_boxen_plots_does_not_import_seaborn():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("correction", ["holm", "by", "bonferroni", "none"])
+def test_the_threshold_line_separates_the_corrections_decisions(correction):
+    """Every p the correction rejects is <= the drawn cut, every other p is above it, on
+    random, tied and all-null families (the decisions of ``multiple_testing.correct``)."""
+    from twinfalsify.inference.multiple_testing import correct
+
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        m = int(rng.integers(1, 60))
+        p = rng.uniform(0, 1, m) ** rng.uniform(1, 12)
+        if trial % 3 == 0:
+            p = np.round(p, 2)  # ties
+        if trial % 10 == 0:
+            p = np.ones(m)  # nothing to reject (the oracle)
+        alpha = float(rng.choice([0.01, 0.05, 0.2]))
+        rej = correct(p, alpha, correction)
+        cut = figures.rejection_threshold(p, correction, alpha)
+        assert (p[rej] <= cut).all() and (p[~rej] > cut).all(), (correction, m, alpha)
+    assert figures.rejection_threshold(np.ones(20), "holm", 0.05) == pytest.approx(0.05 / 20)
+
+
+def test_an_all_null_panel_shows_the_threshold_from_zero():
+    """The oracle: every p = 1. The panel runs from 0 to above the Holm cut alpha / m, with
+    the line, instead of a +-0.04 band around the zeros."""
+    res = pd.DataFrame([{"hyp_id": i, "kind": "causal", "outcome": "HR", "t": 1, "side": side,
+                         "method": "hoeffding", "p_value": 1.0, "p_floor": False,
+                         "rejected": False, "correction": "holm", "alpha": 0.05}
+                        for i in range(50) for side in ("lo", "up")])  # fmt: skip
+    fig = figures.pvalue_boxen_methods(res, title="twin oracle: p-values")
+    cut_y = -np.log10(0.05 / 100)
+    for ax in fig.axes:
+        lo, hi = ax.get_ylim()
+        assert -0.5 < lo <= 0 and hi > cut_y
+        ys = [ln.get_ydata()[0] for ln in ax.get_lines() if len(ln.get_ydata()) == 2]
+        assert any(np.isclose(y, cut_y) for y in ys)
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert labels == ["Holm threshold, alpha = 0.05: 0 of 50 rejected"]
+
+
+def test_every_twin_figure_names_its_twin_and_its_unit(st):
+    """Propensity, sample sizes, histograms and sensitivity say which twin they show; panels
+    counting parameter sets say so."""
+    fig = figures.sample_size_histograms(st.results, twin="biased")
+    n_sets = st.results[st.results["kind"] == "causal"]["hyp_id"].nunique()
+    assert fig.get_suptitle() == f"twin biased: sample sizes of the {n_sets} causal parameter sets"
+    assert fig.axes[0].get_ylabel() == "parameter sets"
+    fig = figures.propensity_scatter(st.results, twin="biased")
+    assert fig.get_suptitle().startswith("twin biased: ")
+    assert all("parameter sets rejected" in ax.get_title() for ax in fig.axes)
+    hid = summary.pick_hypothesis(st.results, rejected=True, prefer_long=False)
+    case = summary.histogram_data(st, hid, alpha=0.05)
+    fig = figures.outcome_histograms([case], twin="biased", methods=["hoeffding", "betting"],
+                                     alpha=0.05)  # fmt: skip
+    assert fig.get_suptitle().startswith("twin biased: ")
+    top, strip = fig.axes
+    assert "min p over hoeffding, betting = " in top.get_title()
+    assert strip.get_title() == "Hoeffding intervals (one-sided 0.975, unadjusted)"

@@ -26,7 +26,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("twins",),
     ("runs", "studyconfig"),
     ("pulse",),
-    ("summary", "figures", "calibration", "explain"),
+    ("summary", "figures", "calibration", "explain", "readme_table", "config_reference"),
 ]
 LAYER_OF = {top: i for i, tops in enumerate(LAYERS) for top in tops}
 

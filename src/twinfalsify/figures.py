@@ -1,6 +1,6 @@
 """Figures recomputed from the results table (matplotlib/seaborn, print-size).
 
-seaborn is imported only by the figures that draw with it (boxen plots, the husl palette):
+seaborn is imported only by the figures that draw with it (the boxen plots):
 importing it, and the scipy.stats it imports, is most of a small figure job's time."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from twinfalsify.io import write_atomic  # noqa: E402
 from twinfalsify.schema import OUTCOMES  # noqa: E402
@@ -63,16 +64,7 @@ def pvalue_boxen(
                 color="#4c72b0",
                 k_depth="trustworthy",
             )
-            rej = part[part["rejected"]]
-            if len(rej):
-                thr = -np.log10(rej["p_value"].max())
-                ax.axhline(
-                    thr,
-                    ls="--",
-                    color="#c44e52",
-                    lw=1,
-                    label=f"rejected after {part['correction'].iloc[0]}",
-                )
+            threshold_line(ax, sub, part)
             mark_floor(ax, part)
             legend_with_headroom(ax)
         ax.set_xlabel("outcome")
@@ -117,6 +109,55 @@ COLORS = {
     "rejected": "#c44e52",
     "kept": "#8c8c8c",
 }
+
+
+CORRECTION_NAMES = {"holm": "Holm", "by": "Benjamini-Yekutieli", "bonferroni": "Bonferroni",
+                    "none": "uncorrected"}
+
+
+def rejection_threshold(p_values: np.ndarray, correction: str, alpha: float) -> float:
+    """The p-value cut the correction applied to this family: every rejected p is <= it and
+    every other p is above it (``inference.multiple_testing.correct``'s decisions).
+
+    Holm stops at the first sorted p_(k+1) > alpha / (m - k): the cut is alpha / (m - k)
+    (alpha when all m are rejected, alpha / m when none). Benjamini-Yekutieli rejects up to
+    the largest k with p_(k) <= k alpha / (m c_m): the cut is max(k, 1) alpha / (m c_m).
+    Bonferroni: alpha / m; none: alpha.
+    """
+    p = np.sort(np.asarray(p_values, float))
+    m = p.size
+    if m == 0 or correction == "none":
+        return float(alpha)
+    if correction == "bonferroni":
+        return float(alpha) / m
+    if correction == "holm":
+        stop = np.flatnonzero(p > alpha / np.arange(m, 0, -1))
+        k = int(stop[0]) if stop.size else m
+        return float(alpha) / (m - k) if k < m else float(alpha)
+    if correction == "by":
+        c_m = float(np.sum(1.0 / np.arange(1, m + 1)))
+        below = np.flatnonzero(p <= np.arange(1, m + 1) / m / c_m * alpha)
+        k = int(below[-1]) + 1 if below.size else 0
+        return max(k, 1) * float(alpha) / (m * c_m)
+    raise ValueError(f"unknown correction {correction!r}")
+
+
+def threshold_line(ax: plt.Axes, family: pd.DataFrame, part: pd.DataFrame) -> float:
+    """Draw the correction's cut (``rejection_threshold`` over the whole ``family``: one
+    method and bound kind, both sides) at -log10 of it, labelled with the correction, alpha
+    and the rejections of this panel's ``part``; the y range then runs from 0 to above it,
+    so a panel where every p is 1 still shows how far the cut is. Returns the cut."""
+    correction = str(family["correction"].iloc[0]) if "correction" in family else "holm"
+    alpha = float(family["alpha"].iloc[0]) if "alpha" in family else 0.05
+    cut = rejection_threshold(family["p_value"].to_numpy(float), correction, alpha)
+    y = -np.log10(cut)
+    what = (f"{CORRECTION_NAMES.get(correction, correction)} threshold, alpha = {alpha:g}"
+            if correction != "none" else f"threshold alpha = {alpha:g}, uncorrected")
+    ax.axhline(y, ls="--", color=COLORS["rejected"], lw=1,
+               label=f"{what}: {int(part['rejected'].sum())} of {len(part)} rejected")
+    hi = max(ax.get_ylim()[1], 1.1 * y)
+    ax.set_ylim(-0.03 * hi, hi)  # -log10 p >= 0: the axis starts at 0
+    return cut
 
 
 def apply_style() -> None:
@@ -213,9 +254,14 @@ def longitudinal_title(twin: str, frame: pd.DataFrame, kind: str,
 # -- item 5: outcome histograms ----------------------------------------------------------------
 
 
-def outcome_histograms(cases: list[dict]) -> plt.Figure:
+def outcome_histograms(cases: list[dict], twin: str | None = None,
+                       methods: list[str] | None = None, alpha: float | None = None
+                       ) -> plt.Figure:  # fmt: skip
     """Per case (summary.histogram_data): histogram of raw outcomes, observational followers vs
-    twin runs, with the Hoeffding intervals of the bounds and of Q_twin drawn below."""
+    twin runs, with the Hoeffding intervals of the bounds and of Q_twin drawn below.
+
+    ``twin`` names the twin in the title; ``methods``: the test methods whose smallest p
+    "min p" is (every method of the results); ``alpha``: the level of the intervals."""
     if not cases:
         raise ValueError("outcome_histograms: no case to draw")
     apply_style()
@@ -235,8 +281,9 @@ def outcome_histograms(cases: list[dict]) -> plt.Figure:
             ax.axvline(y, color="k", ls=":", lw=1)
         ax.set_ylabel("density")
         state = "rejected" if c["rejected"] else "not rejected"
+        over = f" over {', '.join(methods)}" if methods else " over the methods"
         ax.set_title(f"{describe_hypothesis(c['outcome'], c['t'], c['actions'], c['bins'])}\n"
-                     f"{state}, min p = {c['p_min']:.2g}", fontsize=9)  # fmt: skip
+                     f"{state}; min p{over} = {c['p_min']:.2g}", fontsize=9)  # fmt: skip
         ax.legend(fontsize=7)
         lo, up = c["q_lo_hat"] - c["r_bound"], c["q_up_hat"] + c["r_bound"]
         bx.plot([lo, up], [1, 1], color=COLORS["bound"], lw=6, solid_capstyle="butt",
@@ -246,7 +293,11 @@ def outcome_histograms(cases: list[dict]) -> plt.Figure:
                     color=COLORS["twin"], capsize=4, label="$Q_{twin}$ interval")  # fmt: skip
         bx.set_yticks([0, 1], ["$Q_{twin}$", "bounds"])
         bx.set_ylim(-0.7, 1.7)
+        level = "1 - alpha/2" if alpha is None else f"{1 - alpha / 2:g}"
+        bx.set_title(f"Hoeffding intervals (one-sided {level}, unadjusted)", fontsize=8)
         bx.set_xlabel(f"raw {unit_label(c['outcome'])} at t = {c['t']}")
+    fig.suptitle(f"twin {twin}: outcomes of {len(cases)} hypotheses, data and twin"
+                 if twin else f"outcomes of {len(cases)} hypotheses, data and twin")
     fig.tight_layout()
     return fig
 
@@ -254,9 +305,11 @@ def outcome_histograms(cases: list[dict]) -> plt.Figure:
 # -- item 6: sample sizes ----------------------------------------------------------------------
 
 
-def sample_size_histograms(results: pd.DataFrame, kind: str = "causal") -> plt.Figure:
+def sample_size_histograms(results: pd.DataFrame, kind: str = "causal",
+                           twin: str | None = None) -> plt.Figure:  # fmt: skip
     """Histograms of n (observational, entering D) and nhat (twin runs entering) across
-    hypotheses, one panel per outcome; log-spaced bins (n + 1 so zeros show)."""
+    parameter sets (H_lo and H_up of a set share them), one panel per outcome; log-spaced
+    bins (n + 1 so zeros show). ``twin`` names the twin in the title."""
     apply_style()
     sub = results[results["kind"] == kind].drop_duplicates("hyp_id")
     if sub.empty:
@@ -282,11 +335,12 @@ def sample_size_histograms(results: pd.DataFrame, kind: str = "causal") -> plt.F
     for ax in axes.flat[len(outs) :]:
         ax.set_visible(False)
     for ax in axes[:, 0]:
-        ax.set_ylabel("hypotheses")
+        ax.set_ylabel("parameter sets")
     for ax in axes[-1, :]:
         ax.set_xlabel("sample size + 1 (trajectories)")
     axes.flat[0].legend(fontsize=7)
-    fig.suptitle(f"Sample sizes per hypothesis ({kind})")
+    head = f"twin {twin}: " if twin else ""
+    fig.suptitle(f"{head}sample sizes of the {len(sub)} {kind} parameter sets")
     fig.tight_layout()
     return fig
 
@@ -294,9 +348,10 @@ def sample_size_histograms(results: pd.DataFrame, kind: str = "causal") -> plt.F
 # -- item 7: propensity vs n -------------------------------------------------------------------
 
 
-def propensity_scatter(results: pd.DataFrame) -> plt.Figure:
-    """P(A_1:t = a_1:t | X_0:N in B_0:N) against n, coloured by rejection (either side), one
-    panel per (method, kind). Low propensity = wide bounds = hard to reject."""
+def propensity_scatter(results: pd.DataFrame, twin: str | None = None) -> plt.Figure:
+    """P(A_1:t = a_1:t | X_0:N in B_0:N) against n, one point per parameter set, coloured by
+    rejection (of H_lo or H_up), one panel per (method, kind). Low propensity = wide bounds =
+    hard to reject. ``twin`` names the twin in the title."""
     apply_style()
     methods = list(pd.unique(results["method"]))
     kinds = [k for k in ("causal", "manski") if k in set(results["kind"])]
@@ -318,60 +373,74 @@ def propensity_scatter(results: pd.DataFrame) -> plt.Figure:
                            label=lab, edgecolors="none")  # fmt: skip
             ax.set_xscale("log")
             ax.set_ylim(-0.02, 1.02)
-            ax.set_title(f"{m}, {k}: {int(per['rej'].sum())} of {len(per)} rejected", fontsize=10)
+            ax.set_title(f"{m}, {k}: {int(per['rej'].sum())} of {len(per)} parameter sets "
+                         "rejected", fontsize=10)  # fmt: skip
             ax.set_xlabel("n (test-set trajectories entering)")
             ax.set_ylabel("$P(A_{1:t} = a_{1:t} | X_{0:N} \\in B_{0:N})$")
     # one legend for every panel, above them: no panel's points can sit under it
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / size[1]))
+    head = f"twin {twin}: " if twin else ""
+    fig.suptitle(f"{head}propensity of the action sequence against n, per parameter set "
+                 "(n = 0 not shown)", fontsize=11, y=1 - 0.05 / size[1], va="top")
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.42 / size[1]))
     fig.legend(handles, labels, loc="upper center", ncol=2, fontsize=8, frameon=False,
-               markerscale=1.5)  # fmt: skip
+               markerscale=1.5, bbox_to_anchor=(0.5, 1 - 0.26 / size[1]))  # fmt: skip
     return fig
 
 
 # -- item 8: sensitivity -----------------------------------------------------------------------
 
 
-def sensitivity_lines(sweep: pd.DataFrame) -> plt.Figure:
-    """Rejections against Delta (widening of [y_lo, y_up]), one panel per method, one line per
-    kind (total over outcomes) and thin lines per outcome. sweep columns: delta, method,
-    group, n_hypotheses, n_rejected, kind."""
+def sensitivity_lines(sweep: pd.DataFrame, twin: str | None = None) -> plt.Figure:
+    """Rejections against Delta (widening of [y_lo, y_up]) as small multiples: a first panel
+    with the totals over outcomes, then one panel per outcome (its own y scale), each with one
+    line per (method: colour, kind: line style). sweep columns: delta, method, group,
+    n_hypotheses, n_rejected, kind. ``twin`` names the twin in the title."""
     need = {"delta", "method", "group", "n_hypotheses", "n_rejected"}
     if need - set(sweep.columns):
         raise ValueError(f"sensitivity_lines: missing columns {sorted(need - set(sweep.columns))}")
     apply_style()
     sweep = sweep if "kind" in sweep else sweep.assign(kind="causal")
     methods = list(pd.unique(sweep["method"]))
-    fig, axes = plt.subplots(1, len(methods), figsize=(5 * len(methods), 3.8), squeeze=False,
-                             sharey=True)  # fmt: skip
     groups = [g for g in OUTCOMES if g in set(sweep["group"])]
     groups += sorted(set(sweep["group"]) - set(groups), key=str)
-    import seaborn as sns
-
-    colours = dict(zip(groups, sns.color_palette("husl", len(groups)), strict=True))
+    panels = ["all outcomes", *groups]
+    ncol = min(4, len(panels))
+    nrow = int(np.ceil(len(panels) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(2.9 * ncol + 1.8, 2.3 * nrow + 0.7),
+                             squeeze=False, sharex=True)  # fmt: skip
+    # methods by colour (a qualitative palette: at most a few, all far apart), kinds by style
+    colours = dict(zip(methods, plt.get_cmap("tab10").colors, strict=False))
     styles = {"causal": "-", "manski": "--"}
-    for ax, m in zip(axes[0], methods, strict=True):
-        sub = sweep[sweep["method"] == m]
-        for k, part in sub.groupby("kind"):
-            ls = styles.get(k, ":")
-            for grp, g in part.groupby("group"):
-                g = g.sort_values("delta")
-                ax.plot(g["delta"], g["n_rejected"], color=colours[grp], ls=ls, lw=0.9,
-                        alpha=0.8)  # fmt: skip
-            tot = part.groupby("delta")["n_rejected"].sum()
-            ax.plot(tot.index, tot.to_numpy(), marker="o", ls=ls, color="k", lw=2, ms=4)
-        ax.set_title(m)
-        ax.set_xlabel(r"$\Delta$ ([y_lo, y_up] widened by factors $1 \mp \Delta/2$)")
-    axes[0, 0].set_ylabel("rejected hypotheses")
-    # one legend for all panels, right of them: totals and kinds by line style, outcomes by
-    # colour (the thin lines)
     kinds = [k for k in styles if k in set(sweep["kind"])]
-    handles = [Line2D([], [], color="k", lw=2, marker="o", ms=4, ls=styles[k],
-                      label=f"{k}: total") for k in kinds]  # fmt: skip
-    handles += [Line2D([], [], color=colours[g], lw=1.2, label=str(g)) for g in groups]
-    fig.tight_layout(rect=(0, 0, 1 - 1.6 / fig.get_size_inches()[0], 1))
-    fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False,
-               title="thick: total, thin: outcome", title_fontsize=7)  # fmt: skip
+    kinds += sorted(set(sweep["kind"]) - set(kinds))
+    for ax, panel in zip(axes.flat, panels, strict=False):
+        sub = sweep if panel == "all outcomes" else sweep[sweep["group"] == panel]
+        top = 1.0
+        for (m, k), part in sub.groupby(["method", "kind"], sort=False):
+            tot = part.groupby("delta")["n_rejected"].sum()
+            top = max(top, float(tot.max()))
+            ax.plot(tot.index, tot.to_numpy(), color=colours[m], ls=styles.get(k, ":"),
+                    marker="o", ms=3, lw=1.4 if panel == "all outcomes" else 1.1)  # fmt: skip
+        ax.set_title(panel, fontsize=9, fontweight="bold" if panel == "all outcomes" else None)
+        ax.tick_params(labelsize=7)
+        # counts: integer ticks from 0; a panel without rejections still spans 0..1
+        ax.set_ylim(-0.04 * top * 1.08, top * 1.08)
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("rejected hypotheses", fontsize=8)
+    for ax in axes[-1, :]:
+        ax.set_xlabel(r"$\Delta$", fontsize=9)
+    handles = [Line2D([], [], color=colours[m], ls=styles.get(k, ":"), marker="o", ms=3,
+                      label=f"{m}, {k}") for m in methods for k in kinds]  # fmt: skip
+    head = f"twin {twin}: " if twin else ""
+    fig.suptitle(f"{head}rejected hypotheses as the bounds widen to "
+                 r"$[y_{lo}(1 - \Delta/2),\ y_{up}(1 + \Delta/2)]$", fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1 - 1.7 / fig.get_size_inches()[0], 1))
+    fig.legend(handles=handles, loc="center right", fontsize=8, frameon=False,
+               title="method, bounds", title_fontsize=8)  # fmt: skip
     return fig
 
 
@@ -443,11 +512,7 @@ def pvalue_boxen_methods(
             if len(part):
                 sns.boxenplot(data=part, x="outcome", y="neg_log10_p", order=order, ax=ax,
                               color=COLORS["bound"], k_depth="trustworthy")  # fmt: skip
-                rej = part[part["rejected"]]
-                if len(rej):
-                    ax.axhline(-np.log10(rej["p_value"].max()), ls="--", color=COLORS["rejected"],
-                               lw=1, label=f"rejected after {part['correction'].iloc[0]}"
-                               f" ({len(rej)})")  # fmt: skip
+                threshold_line(ax, sub, part)
                 mark_floor(ax, part)
                 legend_with_headroom(ax)
             ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
