@@ -85,9 +85,9 @@ def test_bad_hello_stops_the_study_before_any_shard_and_dry_runs_start_no_twin(t
     assert "twin_hello" in dry.stdout + dry.stderr and not log.exists()  # no twin started
     done = run(tmp_path, config, "--cores", "1", timeout=600)
     assert done.returncode != 0
-    lines = [ln for ln in (done.stdout + done.stderr).splitlines() if "ERROR: " in ln]
-    assert any("twins.nover: " in ln and "hello field 'version' must be a string" in ln
-               for ln in lines), lines
+    last = done.stderr.strip().splitlines()[-1]  # the run's last line names twin and field
+    assert last.startswith("ERROR: twins.nover: ") and "bad hello: hello field 'version' " \
+        "must be a string, got None" in last, done.stderr[-2000:]
     assert not list(twins.glob("*/shards/*.parquet"))  # no shard of any twin ran
     assert (twins / "good" / "hello.json").is_file() or not log.exists()
     # a start with nothing new to do for the good twin's hello starts no twin again
@@ -97,3 +97,18 @@ def test_bad_hello_stops_the_study_before_any_shard_and_dry_runs_start_no_twin(t
     assert len(asked) == 1  # the probe run, once
     assert run(tmp_path, config, "--cores", "1", target, timeout=600).returncode == 0
     assert log.read_text().splitlines() == asked
+
+
+def test_job_errors_are_read_from_the_failed_jobs_logs(tmp_path):
+    from twinfalsify.io import job_errors
+
+    (tmp_path / "a.log").write_text("2026-01-01 10:00:00,000 started\n"
+                                    "2026-01-01 10:00:01,000 ERROR: t.csv: row 3, column HR\n")
+    (tmp_path / "b.log").write_text("no error line here\n")
+    main = tmp_path / "snakemake.log"
+    main.write_text(f"Error in rule trajectories:\n    jobid: 3\n"
+                    f"    log: {tmp_path / 'a.log'}, {tmp_path / 'b.log'} (check log file(s) "
+                    f"for error details)\nError in rule twin_hello:\n"
+                    f"    log: {tmp_path / 'gone.log'} (check log file(s) for error details)\n")
+    assert job_errors(main) == ["ERROR: t.csv: row 3, column HR"]
+    assert job_errors(tmp_path / "missing.log") == []

@@ -27,7 +27,7 @@ rule twin_plan:
 # The twin's hello is checked, and one short run timed, before the expensive work: the rule
 # has no data inputs, so it runs at the start, next to the extraction, and every shard of
 # the twin waits for it. Its params are the shard's (spec without execution keys, code), so
-# it reruns only when the twin's shards would.
+# it reruns only when the twin's shards would. Its priority puts it first when cores are few.
 rule twin_hello:
     output:
         f"{twin_dir()}/hello.json",
@@ -35,6 +35,7 @@ rule twin_hello:
         f"{LOGS}/twins/{{twin}}/hello.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/hello.tsv"
+    priority: 50
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
