@@ -112,3 +112,10 @@ def test_job_errors_are_read_from_the_failed_jobs_logs(tmp_path):
                     f"    log: {tmp_path / 'gone.log'} (check log file(s) for error details)\n")
     assert job_errors(main) == ["ERROR: t.csv: row 3, column HR"]
     assert job_errors(tmp_path / "missing.log") == []
+
+
+def test_the_probe_patient_is_the_checks_first_patient():
+    from twinfalsify.runs.check import shipped_x0
+    from twinfalsify.runs.hello import probe_x0
+
+    assert probe_x0() == shipped_x0(1)[0]

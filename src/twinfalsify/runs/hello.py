@@ -25,10 +25,15 @@ PROBE_HOURS = 1  # hours of the one timed run: a slow engine (Pulse) pays ~minut
 
 
 def probe_x0() -> dict[str, float]:
-    """The X_0 of the probe run: the synthetic world's median patient (``runs.check``)."""
-    from twinfalsify.runs.check import shipped_x0
+    """The X_0 of the probe run: the synthetic world's median patient, the first X_0 of
+    ``runs.check.shipped_x0`` (not imported: its modules would join this rule's code)."""
+    from twinfalsify.schema import STAY_ID, TIME
+    from twinfalsify.sources.synthetic import generate
 
-    return shipped_x0(1)[0]
+    x0 = generate({"n_stays": 400}, seed=11)
+    x0 = x0[x0[TIME] == 0].set_index(STAY_ID)[list(FEATURES)]
+    med = (x0 - x0.median()).abs().div(x0.std() + 1e-12).sum(axis=1).idxmin()
+    return {f: float(x0.at[med, f]) for f in FEATURES}
 
 
 def twin_hello(name: str, spec: dict[str, Any], hours: int = PROBE_HOURS) -> dict[str, Any]:
