@@ -13,7 +13,8 @@ from twinfalsify.runs.plan import TwinPlan  # noqa: E402
 def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
     runs = len(plan.x0_stay_ids) * sum(len(shard) for shard in plan.shards)
-    cost = projected_cost(plan.hours(), runs, read_json(sm.input.hello), sm.params.workers)
+    workers = int(sm.config["twins"][sm.wildcards.twin].get("workers", 1))
+    cost = projected_cost(plan.hours(), runs, read_json(sm.input.hello), workers)
     line = cost_line(sm.wildcards.twin, cost)
     log.info("%s", line)  # the log handler also writes it to the study's console
     write_json(cost, sm.output[0])

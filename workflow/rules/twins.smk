@@ -65,8 +65,8 @@ rule twin_cost:
     resources:
         mem_mb=1000,
         runtime=5,
+    # workers is read from the config by the script: an execution key, as for the shards
     params:
-        workers=lambda w: int(config["twins"][w.twin].get("workers", 1)),
         code=code("twin_cost"),
     script:
         "../../scripts/twin_cost.py"
@@ -74,9 +74,10 @@ rule twin_cost:
 
 rule twin_shard:
     input:
-        # ancient: the shard waits for the hello and the cost line, but a rerun of either
-        # (a new workers count, a deleted hello.json) reruns no shard
-        cost=ancient(f"{twin_dir()}/cost.json"),
+        # the shard waits for the hello and the cost line; both rerun only when the twin's
+        # spec or code, or the plan, changed, which reruns the shard anyway (not ancient():
+        # Snakemake then skips the shard's own params check when the cost job reruns)
+        cost=f"{twin_dir()}/cost.json",
         plan=f"{R}/twin_plan.json",
         context=f"{R}/twin_context.json",
         d=f"{R}/d.parquet",
