@@ -25,3 +25,13 @@ rule all:
     default_target: True
     input:
         all_outputs(),
+
+
+# A failed job's one-line error (run_rule) ends the run's output, after Snakemake's own
+# closing lines, rather than sitting above them (twinfalsify.io.job_errors).
+onerror:
+    import atexit
+    from twinfalsify.io import job_errors
+
+    for _line in job_errors(*log):
+        atexit.register(print, _line, file=sys.stderr, flush=True)

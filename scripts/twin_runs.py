@@ -11,8 +11,10 @@ from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, w
 from twinfalsify.runs.plan import (  # noqa: E402
     TwinPlan,
     failing_patients,
+    restart_warning,
     status_summary,
     twin_hellos,
+    worker_summary,
 )
 from twinfalsify.schema import ContractError  # noqa: E402
 
@@ -21,6 +23,7 @@ def main(sm):
     plan = TwinPlan.from_json(read_json(sm.input.plan))
     shards = [read_parquet(p, "twin shard") for p in sm.input.shards]
     hellos = twin_hellos([s.attrs.get("twin_hello") for s in shards])
+    workers = worker_summary([s.attrs.get("twin_workers") for s in shards])
     runs = pd.concat(shards, ignore_index=True)
     expected = len(plan.nodes) * len(plan.x0_stay_ids)
     dup = runs.duplicated(["node", "init_stay_id"])
@@ -36,13 +39,19 @@ def main(sm):
         "by_hour_and_status": status_summary(runs),
         "twin_hours": plan.hours(),
         **hellos,
+        **({"workers": workers} if workers else {}),
     }
-    warning = failing_patients(runs, sm.wildcards.twin)
-    if warning:  # on stderr too: the study's own output, not only its log
-        summary["warnings"] = [warning]
+    warnings = [w for w in (failing_patients(runs, sm.wildcards.twin),
+                            restart_warning(sm.wildcards.twin, None, workers.get("total")))
+                if w]
+    if warnings:
+        summary["warnings"] = warnings
+    for warning in warnings:  # on stderr too: the study's own output, not only its log
         log.warning("%s", warning)
         print(f"WARNING: {warning}", file=sys.stderr, flush=True)
     log.info("%s", summary)
+    # the merged runs keep their shards' worker restarts: the study summary shows them
+    runs.attrs = {"twin_workers": workers} if workers else {}
     write_parquet(runs, sm.output.runs)
     write_json(summary, sm.output.summary)
 

@@ -7,7 +7,7 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 from twinfalsify.design import ActionBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
-from twinfalsify.runs.plan import TwinPlan, run_shard, x0_frame  # noqa: E402
+from twinfalsify.runs.plan import TwinPlan, restart_warning, run_shard, x0_frame  # noqa: E402
 from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
 
@@ -34,6 +34,11 @@ def main(sm):
     if hello:  # what the twin said it is: recorded with its runs (run_summary.json)
         log.info("twin %s says it is %s", sm.wildcards.twin, hello)
         runs.attrs["twin_hello"] = dict(hello)
+    workers = getattr(twin, "last_workers", None)
+    if workers is not None:  # a served twin: its worker restarts, kept with its runs
+        runs.attrs["twin_workers"] = dict(workers)
+        if warning := restart_warning(sm.wildcards.twin, int(sm.wildcards.shard), workers):
+            log.warning("WARNING: %s", warning)
     write_parquet(runs, sm.output[0])
 
 

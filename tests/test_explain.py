@@ -85,3 +85,43 @@ def test_the_command_line_names_a_missing_hypothesis(study_dir):
     assert bad.returncode == 2
     assert bad.stderr.strip().startswith(f"twinfalsify.explain: error: {r}/design/"
                                          "hypotheses.parquet: no hypothesis 999999")
+
+
+def test_rejections_to_explain_takes_the_smallest_p_first():
+    from twinfalsify.explain import rejections_to_explain
+
+    res = pd.DataFrame({"hyp_id": [5, 5, 2, 9, 7], "p_value": [0.3, 1e-4, 1e-3, 1e-4, 0.5],
+                        "rejected": [False, True, True, True, False]})
+    assert rejections_to_explain(res, 2) == ([5, 9], 3)  # equal p: the smaller hyp_id
+    assert rejections_to_explain(res, 10) == ([5, 9, 2], 3)
+    assert rejections_to_explain(res, 0) == ([], 3)
+
+
+def test_the_report_page_explains_each_rejection_with_its_figure(test_study):
+    """config/test.yaml's biased twin: the page holds the first k = 3 rejections, each as
+    ``explain`` words it and with its own bounds figure (a PNG)."""
+    import base64
+    import html
+    import re
+
+    from twinfalsify.explain import rejections_to_explain
+
+    work, _ = test_study
+    r = work / "results" / "test"
+    res = pd.read_parquet(r / "twins" / "biased" / "results.parquet")
+    ids, n_rejected = rejections_to_explain(res, 3)
+    assert len(ids) >= 2  # two rejections at least, to show
+    page = (r / "twins" / "biased" / "explained.html").read_text()
+    assert f"{len(ids)} of {n_rejected} rejected hypotheses" in page
+    shown = [int(h) for h in re.findall(r"<h2 id='h(\d+)'>", page)]
+    assert shown == ids
+    for hyp_id in ids:
+        assert f"<pre>{html.escape(explain(r, hyp_id, 'biased'))}</pre>" in page
+    pngs = re.findall(r"base64,([A-Za-z0-9+/=]+)'", page)
+    assert len(pngs) == len(ids)
+    assert all(base64.b64decode(p).startswith(b"\x89PNG") for p in pngs)
+    # a twin without rejections says so
+    res_o = pd.read_parquet(r / "twins" / "oracle" / "results.parquet")
+    page_o = (r / "twins" / "oracle" / "explained.html").read_text()
+    if not res_o["rejected"].any():
+        assert "No hypothesis was rejected for this twin." in page_o

@@ -65,7 +65,8 @@ def test_changing_one_twin_reruns_only_that_twin(study, tmp_path):
     assert run.returncode == 0, out[-2000:]
     rules = set(re.findall(r"rule (\w+):", out)) - {"all"}
     assert rules == {
-        "twin_shard", "twin_runs", "tests", "rejections_table", "table_rejections_tex",
+        "twin_hello", "twin_cost", "twin_shard", "twin_runs", "tests", "rejections_table",
+        "table_rejections_tex", "explain_rejections",
         "figure_pvalues", "figure_longitudinal", "figure_histograms", "figure_sample_sizes",
         "figure_propensity", "figure_sensitivity", "summary",
     }

@@ -14,11 +14,14 @@ design/actions.json and twins/<twin>/results.parquet.
 from __future__ import annotations
 
 import argparse
+import base64
+import html
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, ActionBins, StateBins
 from twinfalsify.io import read_json, read_parquet
@@ -127,6 +130,40 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None) -> st
             lines.append(f"  {m.method:<10} H_{m.side}: p = {m.p_value:.3g}, {verdict} "
                          f"(alpha {m.alpha:g}, {m.correction})")
     return "\n".join(lines)
+
+
+DEFAULT_EXPLAINED = 3  # rejections explained per twin in the report (figures.explained.k)
+
+
+def rejections_to_explain(results: pd.DataFrame, k: int) -> tuple[list[int], int]:
+    """The first ``k`` hypotheses rejected by any method (smallest p first, then hyp_id)
+    and how many were rejected in all."""
+    rej = results[results["rejected"]]
+    per = rej.groupby("hyp_id")["p_value"].min().reset_index()
+    per = per.sort_values(["p_value", "hyp_id"], kind="stable")
+    return [int(h) for h in per["hyp_id"].head(max(int(k), 0))], len(per)
+
+
+def explained_html(twin: str, sections: Sequence[tuple[int, str, bytes]], n_rejected: int) -> str:
+    """A self-contained page: per rejection (hyp_id, ``explain`` text, PNG of its bounds
+    figure) the text and the figure, for the Snakemake report."""
+    style = ("body{font-family:sans-serif;margin:1.5em;max-width:62em}"
+             "pre{background:#f6f6f6;padding:.6em;white-space:pre-wrap}img{max-width:100%}")
+    out = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>twin {html.escape(twin)}: "
+           f"rejections explained</title><style>{style}</style></head><body>",
+           f"<h1>Twin <code>{html.escape(twin)}</code>: rejections explained</h1>",
+           f"<p>{len(sections)} of {n_rejected} rejected hypotheses (smallest p-value first)."
+           "</p>"]
+    if not n_rejected:
+        out.append("<p>No hypothesis was rejected for this twin.</p>")
+    for hyp_id, text, png in sections:
+        data = base64.b64encode(png).decode("ascii")
+        out += [f"<h2 id='h{hyp_id}'>Hypothesis {hyp_id}</h2>",
+                f"<pre>{html.escape(text)}</pre>",
+                f"<img alt='bounds over time of hypothesis {hyp_id}' "
+                f"src='data:image/png;base64,{data}'>"]
+    out.append("</body></html>")
+    return "\n".join(out)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

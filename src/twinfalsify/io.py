@@ -158,6 +158,42 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
         sys.exit(1)
 
 
+def job_errors(*snakemake_logs: str | Path) -> list[str]:
+    """The one-line errors of the jobs a Snakemake run saw fail, in the order they failed.
+
+    Snakemake's log names each failed job's logs ("Error in rule R:" ... "log: a.log, b.log
+    (check log file(s) ...)"); the last "ERROR: " line ``run_rule`` wrote to each is its
+    error. Printed at the very end of a failed run (the Snakefile's ``onerror``), the error
+    is the run's last line instead of one in the middle of Snakemake's closing lines. A job
+    whose log holds no such line (killed, out of memory) adds nothing. Never raises.
+    """
+    out: list[str] = []
+    lines: list[str] = []
+    for path in snakemake_logs:
+        try:
+            lines += Path(path).read_text(errors="replace").splitlines()
+        except (OSError, TypeError):
+            continue
+    rule = None
+    for line in lines:
+        if line.startswith("Error in rule "):
+            rule = line.removeprefix("Error in rule ").rstrip(":")
+        elif rule and line.strip().startswith("log: "):
+            paths = line.strip().removeprefix("log: ").split(" (check log")[0]
+            for path in paths.split(", "):
+                try:
+                    errs = [ln for ln in Path(path).read_text(errors="replace").splitlines()
+                            if "ERROR: " in ln]
+                except OSError:
+                    continue
+                if errs:
+                    msg = "ERROR: " + errs[-1].split("ERROR: ", 1)[1]
+                    if msg not in out:
+                        out.append(msg)
+            rule = None
+    return out
+
+
 def _file_error(exc: OSError) -> str | None:
     """One line for an OSError about a file (read-only or full results folder, a file where
     a folder should be, a missing input), or None when it names no file (then it is a bug)."""

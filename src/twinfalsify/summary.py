@@ -20,7 +20,14 @@ from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes,
 from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
-from twinfalsify.runs.plan import TwinPlan, failing_patients, load_nodes, x0_frame
+from twinfalsify.runs.plan import (
+    WORKER_STATS,
+    TwinPlan,
+    failing_patients,
+    load_nodes,
+    restart_warning,
+    x0_frame,
+)
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
 from twinfalsify.tables import markdown_table
 
@@ -419,7 +426,9 @@ def study_summary(
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
     clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
-    untestable (parameter sets with n = 0 or nhat = 0, per twin and kind).
+    untestable (parameter sets with n = 0 or nhat = 0, per twin and kind), workers
+    (worker restarts per twin and shard, from the runs' ``twin_workers`` attribute that
+    the twin_runs rule writes; none for in-process twins), failing (warnings).
     """
     n_d0, n_d = d0["stay_id"].nunique(), d["stay_id"].nunique()
     cohort = pd.DataFrame({
@@ -429,6 +438,7 @@ def study_summary(
     hyp = hyps.groupby("kind").agg(parameter_sets=("hyp_id", "size")).reset_index()
     hyp["hypotheses"] = 2 * hyp["parameter_sets"]
     runs_rows, clamp_rows, rej_rows, unt_rows, clip_rows = [], [], [], [], []
+    worker_rows: list[dict] = []
     failing: list[str] = []
     for name, parts in twins.items():
         runs, res = parts["runs"], parts["results"]
@@ -452,6 +462,11 @@ def study_summary(
         unt_rows.append(u)
         if "init_stay_id" in runs and failing_patients(runs, name):
             failing.append(failing_patients(runs, name))
+        workers = runs.attrs.get("twin_workers") or {}
+        for shard, stats in enumerate(workers.get("per_shard", [])):
+            worker_rows.append({"twin": name, "shard": shard, **stats})
+        if warning := restart_warning(name, None, workers.get("total")):
+            failing.append(warning)
         if parts.get("clipped") is not None:
             cp = parts["clipped"].copy()
             cp.insert(0, "twin", name)
@@ -469,6 +484,7 @@ def study_summary(
                                      "untestable", "tested"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
         "failing": pd.DataFrame({"warning": failing}, dtype=object),
+        "workers": pd.DataFrame(worker_rows, columns=["twin", "shard", *WORKER_STATS]),
         "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
                                    "twin_at_y_up", "data_outputs", "data_at_y_lo",
                                    "data_at_y_up"]),
@@ -484,6 +500,8 @@ _TITLES = {
                   "hypotheses the method refused (p = 1 by rule: n or nhat = 0, or below "
                   "the bootstrap's min_n), so tested = hypotheses - untestable",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
+    "workers": "Twin worker restarts per shard (served twins): crashes (died during a "
+               "request), hangs (killed at timeout_s), malformed answers",
     "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
                "y_up, per twin and outcome",
 }

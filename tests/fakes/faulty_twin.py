@@ -49,7 +49,8 @@ Wrong twins that speak the protocol perfectly (the check's behaviour rows must n
     glucose_mmol    Glucose in mmol/L (the good value / 18.016), still labelled mg/dL
     x0_ignored      the same trajectory for every X_0 (a fixed patient replaces X_0)
 Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
-``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2),
+``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2), ``no_version`` (hello
+has no version),
 ``no_hello`` (exit at once), ``unflushed`` (never flush stdout: answers sit in the pipe's
 buffer until the twin exits), ``no_bye`` (shutdown is ignored: no bye, no exit until
 stdin closes), ``silent_unknown`` (an unknown op gets no answer).
@@ -99,7 +100,7 @@ RUN_MODES = (
 )
 DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello", "no_bye",
-              "silent_unknown", "unflushed")
+              "silent_unknown", "unflushed", "no_version")
 
 
 def expected(x0: dict[str, float], doses: Sequence[Sequence[float]], seed: int,
@@ -325,9 +326,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 caps["batch"] = args.batch
             if args.truncate:
                 caps["truncate"] = True
-            send({"op": "hello", "ok": True, "name": "faulty", "version": "1",
-                  "protocol": 2 if "bad_protocol" in twin_modes else PROTOCOL_VERSION,
-                  "features": feats, "capabilities": caps})
+            hello = {"op": "hello", "ok": True, "name": "faulty", "version": "1",
+                     "protocol": 2 if "bad_protocol" in twin_modes else PROTOCOL_VERSION,
+                     "features": feats, "capabilities": caps}
+            if "no_version" in twin_modes:
+                del hello["version"]
+            send(hello)
             continue
         if msg["op"] == "simulate_batch":
             results, raw, chatty = [], None, False

@@ -158,6 +158,8 @@ def all_outputs():
             for f in figures
             for ext in ("png", "pdf")
         ]
+        if not adaptive:  # each rejection in clinical words, with its figure
+            out.append(f"{twin_dir(twin)}/explained.html")
     return out
 
 

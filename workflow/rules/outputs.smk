@@ -147,6 +147,34 @@ rule figure_longitudinal:
         "../../scripts/figure_longitudinal.py"
 
 
+rule explain_rejections:
+    input:
+        **STUDY_TWIN_INPUTS,
+    output:
+        report(
+            f"{twin_dir()}/explained.html",
+            caption="../report/explained.rst",
+            category="Rejections explained",
+            subcategory="{twin}",
+        ),
+    log:
+        f"{LOGS}/twins/{{twin}}/explain_rejections.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/explain_rejections.tsv"
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        figures=canon(config.get("figures", {})),
+        testing=canon(config["testing"]),
+        quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
+        code=code("explain_rejections"),
+    script:
+        "../../scripts/explain_rejections.py"
+
+
 rule figure_histograms:
     input:
         **STUDY_TWIN_INPUTS,

@@ -24,8 +24,60 @@ rule twin_plan:
         "../../scripts/twin_plan.py"
 
 
+# The twin's hello is checked, and one short run timed, before the expensive work: the rule
+# has no data inputs, so it runs at the start, next to the extraction, and every shard of
+# the twin waits for it. Its params are the shard's (spec without execution keys, code), so
+# it reruns only when the twin's shards would. Its priority puts it first when cores are few.
+rule twin_hello:
+    output:
+        f"{twin_dir()}/hello.json",
+    log:
+        f"{LOGS}/twins/{{twin}}/hello.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/hello.tsv"
+    priority: 50
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=1000,
+        runtime=lambda w: 10 + int(config["twins"][w.twin].get("timeout_s", 600)) // 30,
+    params:
+        spec=shard_spec,
+        code=lambda w: f"{shard_code(w.twin)}+{code('twin_hello')}",
+    script:
+        "../../scripts/twin_hello.py"
+
+
+# Engine-hours the plan asks of the twin and the projected wall time on its workers, said
+# before any shard runs.
+rule twin_cost:
+    input:
+        plan=f"{R}/twin_plan.json",
+        hello=f"{twin_dir()}/hello.json",
+    output:
+        f"{twin_dir()}/cost.json",
+    log:
+        f"{LOGS}/twins/{{twin}}/cost.log",
+    benchmark:
+        f"{R}/benchmarks/twins/{{twin}}/cost.tsv"
+    conda:
+        "../../envs/twinfalsify.yaml"
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    # workers is read from the config by the script: an execution key, as for the shards
+    params:
+        code=code("twin_cost"),
+    script:
+        "../../scripts/twin_cost.py"
+
+
 rule twin_shard:
     input:
+        # the shard waits for the hello and the cost line; both rerun only when the twin's
+        # spec or code, or the plan, changed, which reruns the shard anyway (not ancient():
+        # Snakemake then skips the shard's own params check when the cost job reruns)
+        cost=f"{twin_dir()}/cost.json",
         plan=f"{R}/twin_plan.json",
         context=f"{R}/twin_context.json",
         d=f"{R}/d.parquet",

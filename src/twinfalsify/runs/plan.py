@@ -375,6 +375,34 @@ def twin_hellos(hellos: list[dict | None]) -> dict:
     return {"twin": {"per_shard": hellos}}
 
 
+WORKER_STATS = ("restarts", "crashes", "hangs", "protocol_breaks")
+
+
+def restart_warning(twin: str, shard: int | None, stats: dict | None) -> str:
+    """'' or one line when a shard (None: all shards) restarted its twin's workers.
+
+    Retries hide a twin that crashes on some requests (every run may still end ok), so a
+    restart is always worth a line: the twin is unstable, or its timeout_s is too short.
+    """
+    if not stats or not stats.get("restarts"):
+        return ""
+    where = f"shard {shard}" if shard is not None else "its shards"
+    return (f"twin {twin}: {where} restarted the twin's workers {stats['restarts']} time(s) "
+            f"(crashes {stats.get('crashes', 0)}, hangs {stats.get('hangs', 0)}, malformed "
+            f"answers {stats.get('protocol_breaks', 0)}); see the shard logs for the stderr "
+            "tails")
+
+
+def worker_summary(per_shard: list[dict | None]) -> dict:
+    """Worker restarts of a twin, per shard and in total, for run_summary.json ({} for an
+    in-process twin, whose shards record none): {"per_shard": [...], "total": {...}}."""
+    if not any(per_shard):
+        return {}
+    rows = [{k: int((st or {}).get(k, 0)) for k in WORKER_STATS} for st in per_shard]
+    return {"per_shard": rows,
+            "total": {k: sum(r[k] for r in rows) for k in WORKER_STATS}}
+
+
 def status_summary(runs: pd.DataFrame) -> dict:
     counts = runs.groupby(["t", "status"]).size().unstack(fill_value=0)
     return json.loads(counts.to_json(orient="index"))

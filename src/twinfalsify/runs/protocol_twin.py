@@ -10,17 +10,21 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from twinfalsify.runs.protocol import ProtocolError, check_result
 from twinfalsify.runs.runner import (
     DEFAULT_BATCH_SIZE,
     DEFAULT_FAIL_FAST_RUNS,
     DEFAULT_MAX_RESTARTS,
     _Pool,
+    _WorkerDied,
+    _WorkerTimeout,
     resolve_command,
     simulate_via_protocol,
 )
@@ -54,21 +58,50 @@ class ProtocolTwin:
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
         self._truncates: bool | None = None
         self.last_hello: dict[str, Any] = {}  # name and version the twin last said hello with
+        # worker trouble of the last simulate call (runner._Pool.worker_stats)
+        self.last_workers: dict[str, int] = {}
 
-    def hello(self) -> dict[str, Any]:
-        """Start one worker, return its (validated) hello answer, shut it down."""
+    def hello(self, probe: dict[str, float] | None = None, hours: int = 1) -> dict[str, Any]:
+        """Start one worker, return its (validated) hello answer, shut it down.
+
+        probe: an X_0; the worker then also simulates it for ``hours`` hours without doses
+        (seed 0) and the answer gets ``"probe": {"hours", "seconds", "status", "message"}``,
+        the wall time of that one run (start-up excluded): a first estimate of the twin's
+        seconds per simulated hour. A failed probe run is reported there, never raised.
+        """
         full_env = {**os.environ, **self.env} if self.env else None
         cmd = resolve_command(self.command, full_env)
         pool = _Pool(cmd, full_env, np.empty((0, len(FEATURES))), np.empty((0, 1, 2)),
                      np.empty(0, dtype=np.uint64), np.ones(1, dtype=int), self.timeout_s,
                      self.retries, FEATURES)
-        worker = pool._start_worker(0)
+        try:
+            worker = pool._start_worker(0)
+        except ContractError as exc:  # name the twin as the config does
+            raise ContractError(f"twins.{self.name}: {exc}") from None
         try:
             hello = {k: v for k, v in worker.hello.items() if k != "declared_units"}
+            if probe is not None:
+                hello["probe"] = self._probe(worker, probe, hours)
         finally:
             pool.workers.pop(0, None)
             worker.close()
         return json.loads(json.dumps(hello))
+
+    def _probe(self, worker: Any, x0: dict[str, float], hours: int) -> dict[str, Any]:
+        request = {"op": "simulate", "id": "probe.0", "x0": {f: float(x0[f]) for f in FEATURES},
+                   "doses": [[0.0, 0.0]] * hours, "hours": hours, "seed": 0}
+        start = time.monotonic()
+        try:
+            answer = worker.ask(request, self.timeout_s)
+            status, message = check_result(answer, "probe.0", hours, FEATURES,
+                                           worker.hello["declared_units"], FEATURES).status, ""
+        except (_WorkerDied, _WorkerTimeout, ProtocolError) as exc:
+            status = "timeout" if isinstance(exc, _WorkerTimeout) else "error"
+            message = str(exc) or f"no answer within {self.timeout_s:g} s"
+        else:
+            message = str(answer.get("message", "")) if status != "ok" else ""
+        return {"hours": hours, "seconds": time.monotonic() - start, "status": status,
+                "message": message}
 
     @property
     def truncates(self) -> bool:
@@ -84,13 +117,14 @@ class ProtocolTwin:
         if continue_while is not None and not self.truncates:
             continue_while = None
         hello: dict[str, Any] = {}
+        self.last_workers = {}
         try:
             res = simulate_via_protocol(
                 self.command, x0, doses, seeds, workers=self.workers, timeout_s=self.timeout_s,
                 retries=self.retries, progress=self.progress, env=self.env,
                 batch_size=self.batch_size, fail_fast_runs=self.fail_fast_runs,
                 max_restarts=self.max_restarts, continue_while=continue_while,
-                check_range=True, hello_out=hello,
+                check_range=True, hello_out=hello, stats_out=self.last_workers,
             )
         except ContractError as exc:  # name the twin as the config does
             raise ContractError(f"twins.{self.name}: {exc}") from None

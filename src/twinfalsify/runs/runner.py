@@ -471,6 +471,13 @@ class _Pool:
         hello_out: dict | None = None,
     ) -> None:
         self.command, self.env = command, env
+        # worker restarts over the whole call (not only before the first ok run), and why:
+        # a twin crashing on every third request still ends with every run ok, so the
+        # restarts are the only trace of it (``worker_stats``)
+        self.crashes = 0  # a worker died (exited, crashed) during a request
+        self.hangs = 0  # a worker was killed for giving no answer in time
+        self.protocol_breaks = 0  # a worker was dropped for a malformed answer
+        self.restarts_total = 0  # worker starts beyond each slot's first
         self.check_range = check_range
         self.hello_out = hello_out  # filled with the first hello's name and version
         # per run: box paths a truncating twin may stop by (runs.truncation), or None
@@ -520,6 +527,7 @@ class _Pool:
         self.started.add(slot)
         if not first:
             with self.lock:
+                self.restarts_total += 1
                 self.restarts += 0 if self.any_ok else 1
                 tripped = (self.max_restarts and not self.any_ok
                            and self.restarts > self.max_restarts)
@@ -565,6 +573,18 @@ class _Pool:
                 self.hello_out.update({k: hello[k] for k in ("name", "version") if k in hello})
             self.take = max(1, min(hello["capabilities"].get("batch", 1), self.batch_size))
         return worker
+
+    def _count(self, what: str) -> None:
+        with self.lock:
+            setattr(self, what, getattr(self, what) + 1)
+
+    def worker_stats(self) -> dict[str, int]:
+        """Worker trouble over the call: ``restarts`` (starts beyond each worker's first),
+        ``crashes`` (died during a request), ``hangs`` (killed on a timeout),
+        ``protocol_breaks`` (dropped for a malformed answer)."""
+        with self.lock:
+            return {"restarts": self.restarts_total, "crashes": self.crashes,
+                    "hangs": self.hangs, "protocol_breaks": self.protocol_breaks}
 
     def _drop_worker(self, slot: int) -> None:
         worker = self.workers.pop(slot, None)
@@ -642,6 +662,7 @@ class _Pool:
                 checked = self._check(answer, request_id, i, worker.hello["declared_units"])
             except _WorkerTimeout as exc:
                 hung = self.workers.get(slot)
+                self._count("hangs")
                 self._drop_worker(slot)  # kill first: the stderr tail is then complete
                 tail = hung.tail() if hung is not None else ""
                 last_status = "timeout"
@@ -650,11 +671,13 @@ class _Pool:
                 )
                 continue
             except _WorkerDied as exc:
+                self._count("crashes")
                 self.workers.pop(slot, None)
                 last_status, last_message = "error", str(exc)
                 continue
             except ProtocolError as exc:
                 # The stream can no longer be trusted to be in step: restart.
+                self._count("protocol_breaks")
                 self._drop_worker(slot)
                 self._record(i, "error", f"malformed answer: {exc}", None)
                 return
@@ -688,6 +711,8 @@ class _Pool:
             )
             results = check_results(answer, len(idx))
         except (_WorkerTimeout, _WorkerDied, ProtocolError) as exc:
+            self._count({_WorkerTimeout: "hangs", _WorkerDied: "crashes"}.get(
+                type(exc), "protocol_breaks"))
             if isinstance(exc, _WorkerDied):
                 self.workers.pop(slot, None)
             else:
@@ -801,6 +826,7 @@ def simulate_via_protocol(
     continue_while: Sequence[list] | None = None,
     check_range: bool = False,
     hello_out: dict | None = None,
+    stats_out: dict | None = None,
 ) -> SimResult:
     """Simulate n runs with a protocol twin; return a SimResult in input order.
 
@@ -836,6 +862,8 @@ def simulate_via_protocol(
     which marks the stored status; the SimResult returned here is the twin's answer).
     ``ProtocolTwin``, what a study uses, turns it on. hello_out: a dict this call fills
     with the ``name`` and ``version`` of the first worker's hello (recorded with the runs).
+    stats_out: a dict this call fills with its worker trouble (``_Pool.worker_stats``:
+    restarts, crashes, hangs, protocol_breaks), also when it raises.
 
     Each worker gets TMPDIR = a folder of this call, removed when it returns, so
     temporary files of workers that had to be killed do not outlive it.
@@ -904,6 +932,8 @@ def simulate_via_protocol(
             pool.kill_all()  # a worker a thread started while we were stopping
         restore_sigterm()
         shutil.rmtree(scratch, ignore_errors=True)
+        if stats_out is not None:
+            stats_out.update(pool.worker_stats())
     if pool.error is not None:
         raise pool.error
     missing = np.flatnonzero(pool.status == "")
@@ -941,6 +971,10 @@ def _report(pool: _Pool, total: int, elapsed: float, final: bool = False) -> Non
     failures = ", ".join(
         f"{s} {counts[s]}" for s in schema.TWIN_STATUSES if s != "ok" and counts.get(s)
     ) or "none"
+    stats = pool.worker_stats()
+    if stats["restarts"]:
+        failures += (f" | worker restarts: {stats['restarts']} (crashes {stats['crashes']}, "
+                     f"hangs {stats['hangs']}, malformed answers {stats['protocol_breaks']})")
     rate = done / elapsed if elapsed > 0 else float("nan")
     eta = (total - done) / rate if rate and rate > 0 else float("inf")
     line = (
