@@ -82,6 +82,8 @@ FAULTS: dict[str, tuple[list[str], dict[str, str]]] = {
     "bad_hello": (["--mode", "bad_hello"], {"hello": "does not declare required feature(s) HR"}),
     "bad_units": (["--mode", "bad_units"], {"hello": "HR in 'Hz' (expected '/min')"}),
     "bad_protocol": (["--mode", "bad_protocol"], {"hello": "twin speaks protocol 2"}),
+    "no_version": (["--mode", "no_version"],
+                   {"hello": "hello field 'version' must be a string, got None"}),
     "no_hello": (["--mode", "no_hello"], {"starts": "exited before answering hello"}),
     "max_hours": (["--max-hours", "2"], {"hello": "max_hours 2 < T = 4"}),
     "unflushed": (["--mode", "unflushed"], {"hello": "no hello answer within 4 s; the hello "
