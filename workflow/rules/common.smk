@@ -181,7 +181,8 @@ def shard_spec(wildcards):
     """The twin's spec without its execution-only keys, as a params value (canon)."""
     spec = config["twins"][wildcards.twin]
     spec = {k: v for k, v in spec.items() if k not in EXECUTION_KEYS}
-    if isinstance(spec.get("command"), str):  # a string runs as its words: the same params
+    # a string runs as its words: the same params
+    if isinstance(spec.get("command"), str):
         spec["command"] = shlex.split(spec["command"])
     return canon(spec)
 
@@ -189,8 +190,11 @@ def shard_spec(wildcards):
 def served_twin(spec):
     """Whether a twin runs through the protocol client: a command twin, a twin served with
     ``protocol: true``, a python twin with more than one worker."""
-    return bool(spec["kind"] == "command" or spec.get("protocol")
-                or (spec["kind"] == "python" and int(spec.get("workers", 1)) > 1))
+    return bool(
+        spec["kind"] == "command"
+        or spec.get("protocol")
+        or (spec["kind"] == "python" and int(spec.get("workers", 1)) > 1)
+    )
 
 
 def served_modules(twin):
@@ -216,8 +220,11 @@ def shard_code(twin, script="twin_shard"):
     so editing them reruns exactly its shards and what follows (twinfalsify.runs.command).
     """
     spec = config["twins"][twin]
-    fingerprint = code(script, served_modules(twin),
-                       () if served_twin(spec) else PROTOCOL_CLIENT_MODULES)
+    fingerprint = code(
+        script,
+        served_modules(twin),
+        () if served_twin(spec) else PROTOCOL_CLIENT_MODULES,
+    )
     if spec["kind"] == "python":  # the factory module's source
         from twinfalsify.runs.registry import python_fingerprint
 
@@ -276,7 +283,8 @@ def shard_runtime(wildcards, input, threads):
     return minutes
 
 
-RUNTIME_WARN_MINUTES = 24 * 60  # a shard's Slurm time limit above a day is worth a warning
+# a shard's Slurm time limit above a day is worth a warning
+RUNTIME_WARN_MINUTES = 24 * 60
 _RUNTIME_WARNED = set()
 
 
