@@ -1,6 +1,7 @@
-"""Benchmark: the MIMIC-III extraction on tables of a given scale, per stage.
+"""Benchmark: the MIMIC-III (or MIMIC-IV) extraction on tables of a given scale, per stage.
 
-Runs ``extract_mimic3`` on a folder written by ``mimic3_synth.py`` and records, for each
+Runs ``extract_mimic3`` on a folder written by ``mimic3_synth.py`` (``extract_mimic4`` when
+the folder has MIMIC-IV's layout, ``--shape mimic4``) and records, for each
 stage of the extraction (the stage functions of ``cohort``; nested calls are reported under
 their caller, e.g. ``max_sofa/_events``): wall time, CPU time of the whole process (user +
 system, every DuckDB thread included; load on a shared machine changes it little, unlike wall
@@ -12,7 +13,7 @@ Run:  PYTHONPATH=src python benchmarks/bench_mimic3_scale.py TABLES_DIR OUT.json
       (wrap in ``/usr/bin/time -v`` for the kernel's peak-RSS figure)
       PYTHONPATH=src python benchmarks/bench_mimic3_scale.py --table A.json B.json ...
       (the scaling table: per stage CPU time against CHARTEVENTS rows, a least-squares line
-      through the origin per stage and its projection to full MIMIC-III)
+      through the origin per stage and its projection to the full release's CHARTEVENTS)
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import duckdb  # noqa: E402
 import psutil  # noqa: E402
 
 from twinfalsify.sources.mimic3 import cohort, doses, hourly, tables  # noqa: E402
+from twinfalsify.sources.mimic4 import extract_mimic4  # noqa: E402
 
 STAGES = {tables: ("stage",),
           cohort: ("_stays", "suspected_infection", "max_sofa", "withdrawn", "_events",
@@ -132,7 +134,13 @@ GROUPS = {"staging (one pass over the files)": ("stage",),
           "1-NN imputation": ("knn_impute",),
           "doses": ("_inputs", "hourly_fluid", "hourly_vasopressor"),
           "audit table": ("_audit",)}
-FULL_CHARTEVENTS = 330_712_483
+# full CHARTEVENTS rows per release (MIMIC-III v1.4; MIMIC-IV v2.2 chartevents)
+FULL_CHARTEVENTS = {"mimic3": 330_712_483, "mimic4": 313_645_063}
+
+
+def shape_of(folder: Path) -> str:
+    """``mimic4`` when the folder has MIMIC-IV's layout (icu/icustays.*), else ``mimic3``."""
+    return "mimic4" if list((folder / "icu").glob("icustays.*")) else "mimic3"
 
 
 def table(paths: list[Path]) -> str:
@@ -140,9 +148,13 @@ def table(paths: list[Path]) -> str:
     size: CPU seconds per CHARTEVENTS row (least squares through the origin) x full rows."""
     runs = sorted((json.loads(p.read_text()) for p in paths),
                   key=lambda r: r["rows"].get("CHARTEVENTS", 0))
+    shapes = {r.get("shape", "mimic3") for r in runs}
+    if len(shapes) != 1:
+        raise SystemExit(f"--table: runs of different releases {sorted(shapes)}; give one")
+    full = FULL_CHARTEVENTS[shapes.pop()]
     rows = [r["rows"].get("CHARTEVENTS", 0) for r in runs]
     head = ("| | " + " | ".join(f"{n / 1e6:.1f} M rows" for n in rows)
-            + " | projected to 330.7 M rows |")
+            + f" | projected to {full / 1e6:.1f} M rows |")
     lines = [head, "|---|" + "---:|" * (len(runs) + 1)]
 
     def stage_cpu(r, names):
@@ -151,7 +163,7 @@ def table(paths: list[Path]) -> str:
     def fit(ys):
         num = sum(x * y for x, y in zip(rows, ys, strict=True))
         den = sum(x * x for x in rows)
-        return num / den * FULL_CHARTEVENTS if den else float("nan")
+        return num / den * full if den else float("nan")
 
     for label, names in GROUPS.items():
         ys = [stage_cpu(r, names) for r in runs]
@@ -196,13 +208,16 @@ def main() -> None:
     records = instrument(sampler)
     sampler.start()
     load0 = os.getloadavg()
+    shape = shape_of(a.folder)
+    extract = extract_mimic4 if shape == "mimic4" else cohort.extract_mimic3
     w, c = time.perf_counter(), time.process_time()
-    res = cohort.extract_mimic3(a.folder, threads=a.threads, memory_limit=a.memory_limit,
-                                temp_directory=a.temp_dir, stage=not a.no_stage)
+    res = extract(a.folder, threads=a.threads, memory_limit=a.memory_limit,
+                  temp_directory=a.temp_dir, stage=not a.no_stage)
     wall, cpu = time.perf_counter() - w, time.process_time() - c
     sampler.stop.set()
     sampler.join()
-    out = {"folder": a.folder.name, "threads": a.threads, "staged": not a.no_stage,
+    out = {"folder": a.folder.name, "shape": shape, "threads": a.threads,
+           "staged": not a.no_stage,
            "memory_limit": a.memory_limit, "rows": rows,
            "cohort": int(res.trajectories["stay_id"].nunique()),
            # equal digests = equal outputs (staged against --no-stage runs of the same tables)

@@ -1,4 +1,5 @@
-"""MIMIC-III v1.4-shaped tables at any fraction of full size (invented values, no patient data).
+"""MIMIC-III v1.4- or MIMIC-IV-shaped tables at any fraction of full size (invented values, no
+patient data).
 
 ``write_mimic3(folder, scale)`` writes the ten tables the extraction reads (PATIENTS,
 ADMISSIONS, ICUSTAYS, CHARTEVENTS, LABEVENTS, INPUTEVENTS_MV, INPUTEVENTS_CV, PRESCRIPTIONS,
@@ -33,7 +34,21 @@ results the extraction must give):
 - neonates (age 0, excluded as not adult) and deaths within 90 days (withdrawal candidates;
   never withdrawn, as their vasopressor rate stays at 0.1 ug/kg/min).
 
+**MIMIC-IV shape** (``shape=MIMIC4``, ``--shape mimic4``): the tables of MIMIC-IV v2.2 in its
+own layout (``hosp/`` and ``icu/``, lower-case files and columns, ``stay_id``, ``anchor_age`` /
+``anchor_year`` instead of DOB, ``prescriptions.starttime``, no ERROR column, no CareVue table)
+at MIMIC-IV v2.2's row counts per ICU stay (``MIMIC4_ROWS``: 73,181 ICU stays, 313.6 M
+chartevents, 118.2 M labevents, 9.0 M inputevents; the counts the MIMIC-IV build scripts
+check). Every stay is MetaVision and adult (MIMIC-IV has no CareVue era and no neonatal ICU);
+``MIMIC4_LAB_NO_HADM`` of the lab rows carry no admission id (about 2 % of MIMIC-IV's
+in-hospital labs), which the extraction links by patient and time. patients and admissions are
+padded to their full counts with patients who never reach an ICU; the lab rows all belong to
+ICU admissions (in MIMIC-IV most belong to other admissions, which the extraction discards
+by item and admission alike). The stays, their values and ``expected_cohort`` /
+``expected_hr`` are the MIMIC-III shape's with these shares.
+
 Run:  PYTHONPATH=src python benchmarks/mimic3_synth.py OUT_DIR --scale 0.01 [--format parquet]
+      [--shape mimic4]
 """
 
 from __future__ import annotations
@@ -41,6 +56,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import duckdb
@@ -59,6 +75,13 @@ CAREVUE_SHARE = 0.62  # ~38k of the 61.5k stays are from the CareVue era (2001-2
 NEONATE_SHARE = 0.128  # ~7.9k neonatal ICU stays
 SEPSIS_SHARE = 0.22  # stays with antibiotic + culture: the cohort is ~19 % of stays
 DEATH_SHARE = 0.12
+# MIMIC-IV v2.2 row counts per table (MIMIC-III view names; the counts MIT-LCP's MIMIC-IV
+# build scripts validate a load against)
+MIMIC4_ROWS = {"PATIENTS": 299_712, "ADMISSIONS": 431_231, "ICUSTAYS": 73_181,
+               "CHARTEVENTS": 313_645_063, "LABEVENTS": 118_171_367, "INPUTEVENTS_CV": 0,
+               "INPUTEVENTS_MV": 8_978_893, "PRESCRIPTIONS": 15_416_708,
+               "MICROBIOLOGYEVENTS": 3_228_713, "OUTPUTEVENTS": 4_234_967}
+MIMIC4_LAB_NO_HADM = 0.02  # lab rows without an admission id
 LOS_MEDIAN_H, LOS_SIGMA = 50.0, 1.31  # log-normal: mean ~ 118 h (MIMIC: 4.9 days)
 ADM_BEFORE_H, ADM_AFTER_H = 6, 72  # the admission around the ICU stay
 
@@ -93,14 +116,36 @@ DRUG_FILLER = ["Acetaminophen", "Heparin", "Insulin", "Potassium Chloride", "Fur
 SPEC = ["BLOOD CULTURE", "URINE", "SPUTUM", "SWAB", "MRSA SCREEN"]
 
 
-def stays_frame(scale: float, seed: int = 0) -> pd.DataFrame:
+@dataclass(frozen=True)
+class Shape:
+    """A release's proportions: ICU stays and rows per table at full size (MIMIC-III view
+    names), the CareVue and neonate shares, and how its files are laid out."""
+
+    name: str
+    full_stays: int
+    full_rows: dict[str, int]
+    carevue_share: float
+    neonate_share: float
+
+    @property
+    def tables(self) -> tuple[str, ...]:
+        """The tables the release has (MIMIC-IV: no INPUTEVENTS_CV)."""
+        return tuple(t for t, rows in self.full_rows.items() if rows)
+
+
+MIMIC3 = Shape("mimic3", FULL_STAYS, FULL_ROWS, CAREVUE_SHARE, NEONATE_SHARE)
+MIMIC4 = Shape("mimic4", MIMIC4_ROWS["ICUSTAYS"], MIMIC4_ROWS, 0.0, 0.0)
+SHAPES = {sh.name: sh for sh in (MIMIC3, MIMIC4)}
+
+
+def stays_frame(scale: float, seed: int = 0, shape: Shape = MIMIC3) -> pd.DataFrame:
     """One row per ICU stay (one stay per admission and patient): identifiers, era, times
     and the per-stay constants the tables are generated from."""
-    n = max(int(round(FULL_STAYS * scale)), 20)
+    n = max(int(round(shape.full_stays * scale)), 20)
     rng = np.random.default_rng(seed)
     i = np.arange(n)
-    cv = rng.random(n) < CAREVUE_SHARE
-    neo = rng.random(n) < NEONATE_SHARE
+    cv = rng.random(n) < shape.carevue_share
+    neo = rng.random(n) < shape.neonate_share
     los = np.clip(LOS_MEDIAN_H * np.exp(rng.normal(0, LOS_SIGMA, n)), 4.0, 2400.0)
     intime = (np.datetime64("2101-01-01T00:00:00")
               + (rng.integers(0, 100 * 365 * 24, n) * 3600).astype("timedelta64[s]"))
@@ -165,9 +210,10 @@ def _in_list(col: str, values: list[int]) -> str:
     return f"list_extract([{vals}], 1 + CAST(({col}) AS BIGINT) % {len(values)})"
 
 
-def table_queries(con: duckdb.DuckDBPyConnection, stays: pd.DataFrame, scale: float
-                  ) -> dict[str, str]:
-    """SELECT statement per table over the registered ``st`` (stays) relation."""
+def table_queries(con: duckdb.DuckDBPyConnection, stays: pd.DataFrame, scale: float,
+                  shape: Shape = MIMIC3) -> dict[str, str]:
+    """SELECT statement per table (MIMIC-III's columns) over the registered ``st`` (stays)
+    relation, with ``shape``'s rows per stay."""
     con.register("st", stays)
     kept = pd.DataFrame(CHART_KEPT, columns=["feature", "item_mv", "item_cv", "every", "base",
                                              "text", "uom"])
@@ -179,7 +225,7 @@ def table_queries(con: duckdb.DuckDBPyConnection, stays: pd.DataFrame, scale: fl
     cv = stays["cv"].to_numpy()
     n_sh_cv, n_sh_mv = float(stays.loc[cv, "nh"].sum()), float(stays.loc[~cv, "nh"].sum())
     n = len(stays)
-    target = {t: FULL_ROWS[t] * n / FULL_STAYS for t in TABLES}
+    target = {t: shape.full_rows[t] * n / shape.full_stays for t in TABLES}
     q: dict[str, str] = {}
 
     q["PATIENTS"] = f"""
@@ -412,6 +458,114 @@ def table_queries(con: duckdb.DuckDBPyConnection, stays: pd.DataFrame, scale: fl
     return q
 
 
+# MIMIC-IV file (relative to the folder, without suffix) and columns per MIMIC-III view: the
+# real MIMIC-IV v2.2 column names in their order, each given by an expression over the
+# MIMIC-III-shaped query's columns (NULL where the generator has nothing to put)
+MIMIC4_FILES: dict[str, tuple[str, dict[str, str]]] = {
+    "ICUSTAYS": ("icu/icustays", {
+        "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID", "stay_id": "ICUSTAY_ID",
+        "first_careunit": "'Medical Intensive Care Unit (MICU)'",
+        "last_careunit": "'Medical Intensive Care Unit (MICU)'", "intime": "INTIME",
+        "outtime": "OUTTIME", "los": "LOS"}),
+    "CHARTEVENTS": ("icu/chartevents", {
+        "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID", "stay_id": "ICUSTAY_ID",
+        "caregiver_id": "CGID", "charttime": "CHARTTIME", "storetime": "STORETIME",
+        "itemid": "ITEMID", "value": "VALUE", "valuenum": "VALUENUM", "valueuom": "VALUEUOM",
+        "warning": "0"}),
+    "LABEVENTS": ("hosp/labevents", {
+        "labevent_id": "ROW_ID", "subject_id": "SUBJECT_ID",
+        "hadm_id": f"CASE WHEN hash(ROW_ID, 5) % 1000000 < {int(MIMIC4_LAB_NO_HADM * 1e6)} "
+                   "THEN NULL ELSE HADM_ID END",
+        "specimen_id": "abs(ROW_ID) // 64", "itemid": "ITEMID", "order_provider_id": "NULL",
+        "charttime": "CHARTTIME", "storetime": "CHARTTIME + INTERVAL 1 HOUR",
+        "value": "VALUE", "valuenum": "VALUENUM", "valueuom": "VALUEUOM",
+        "ref_range_lower": "NULL", "ref_range_upper": "NULL", "flag": "FLAG",
+        "priority": "'ROUTINE'", "comments": "NULL"}),
+    "INPUTEVENTS_MV": ("icu/inputevents", {
+        "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID", "stay_id": "ICUSTAY_ID",
+        "caregiver_id": "CGID", "starttime": "STARTTIME", "endtime": "ENDTIME",
+        "storetime": "STORETIME", "itemid": "ITEMID", "amount": "AMOUNT",
+        "amountuom": "AMOUNTUOM", "rate": "RATE", "rateuom": "RATEUOM", "orderid": "ORDERID",
+        "linkorderid": "ORDERID", "ordercategoryname": "NULL",
+        "secondaryordercategoryname": "NULL", "ordercomponenttypedescription": "NULL",
+        "ordercategorydescription": "NULL", "patientweight": "PATIENTWEIGHT",
+        "totalamount": "TOTALAMOUNT", "totalamountuom": "'ml'", "isopenbag": "0",
+        "continueinnextdept": "0", "statusdescription": "STATUSDESCRIPTION",
+        "originalamount": "AMOUNT", "originalrate": "RATE"}),
+    "OUTPUTEVENTS": ("icu/outputevents", {
+        "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID", "stay_id": "ICUSTAY_ID",
+        "caregiver_id": "CGID", "charttime": "CHARTTIME", "storetime": "STORETIME",
+        "itemid": "ITEMID", "value": "VALUE", "valueuom": "VALUEUOM"}),
+    "PRESCRIPTIONS": ("hosp/prescriptions", {
+        "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID", "pharmacy_id": "ROW_ID",
+        "poe_id": "NULL", "poe_seq": "NULL", "order_provider_id": "NULL",
+        "starttime": "STARTDATE", "stoptime": "ENDDATE", "drug_type": "DRUG_TYPE",
+        "drug": "DRUG", "formulary_drug_cd": "NULL", "gsn": "NULL", "ndc": "NULL",
+        "prod_strength": "NULL", "form_rx": "NULL", "dose_val_rx": "DOSE_VAL_RX",
+        "dose_unit_rx": "DOSE_UNIT_RX", "form_val_disp": "NULL", "form_unit_disp": "NULL",
+        "doses_per_24_hrs": "NULL", "route": "ROUTE"}),
+    "MICROBIOLOGYEVENTS": ("hosp/microbiologyevents", {
+        "microevent_id": "ROW_ID", "subject_id": "SUBJECT_ID", "hadm_id": "HADM_ID",
+        "micro_specimen_id": "ROW_ID // 1024", "order_provider_id": "NULL",
+        "chartdate": "CHARTDATE", "charttime": "CHARTTIME", "spec_itemid": "SPEC_ITEMID",
+        "spec_type_desc": "SPEC_TYPE_DESC", "test_seq": "1", "storedate": "CHARTDATE",
+        "storetime": "CHARTTIME", "test_itemid": "NULL", "test_name": "NULL",
+        "org_itemid": "NULL", "org_name": "ORG_NAME", "isolate_num": "NULL",
+        "quantity": "NULL", "ab_itemid": "NULL", "ab_name": "NULL", "dilution_text": "NULL",
+        "dilution_comparison": "NULL", "dilution_value": "NULL", "interpretation": "NULL",
+        "comments": "NULL"}),
+    "PATIENTS": ("hosp/patients", {}),
+    "ADMISSIONS": ("hosp/admissions", {}),
+}
+
+
+def mimic4_queries(q3: dict[str, str], stays: pd.DataFrame, shape: Shape = MIMIC4
+                   ) -> dict[str, str]:
+    """MIMIC-IV file stem -> SELECT: the MIMIC-III-shaped queries ``q3`` under MIMIC-IV's
+    files and columns; patients from the stays (anchor_year = the year of INTIME, anchor_age
+    = the age then; dod a date) and, like admissions, padded to ``shape``'s counts with
+    patients who never reach an ICU."""
+    n = len(stays)
+    per_stay = {t: shape.full_rows[t] * n / shape.full_stays for t in ("PATIENTS",
+                                                                       "ADMISSIONS")}
+    pad_pat = max(int(round(per_stay["PATIENTS"])) - n, 0)
+    pad_adm = max(int(round(per_stay["ADMISSIONS"])) - n, 0) if pad_pat else 0
+    q: dict[str, str] = {}
+    for view, (stem, cols) in MIMIC4_FILES.items():
+        if cols:
+            sel = ", ".join(f'{expr} AS "{col}"' for col, expr in cols.items())
+            q[stem] = f"SELECT {sel} FROM ({q3[view]})"
+    q["hosp/patients"] = f"""
+        SELECT subject_id, CASE WHEN female THEN 'F' ELSE 'M' END AS gender,
+               CAST(floor(date_diff('day', dob, intime) / 365.25) AS INTEGER) AS anchor_age,
+               year(intime) AS anchor_year, '2011 - 2013' AS anchor_year_group,
+               CASE WHEN died THEN CAST({_ts('intime', 'los_h + 24 * dod_days')} AS DATE)
+               END AS dod
+        FROM st
+        UNION ALL
+        SELECT {n + 1} + j, CASE WHEN j % 2 = 0 THEN 'F' ELSE 'M' END, 20 + j % 70,
+               2150 + j % 50, '2011 - 2013', NULL::DATE
+        FROM range({pad_pat}) r(j)"""
+    q["hosp/admissions"] = f"""
+        SELECT SUBJECT_ID AS subject_id, HADM_ID AS hadm_id, ADMITTIME AS admittime,
+               DISCHTIME AS dischtime, DEATHTIME AS deathtime,
+               ADMISSION_TYPE AS admission_type, NULL AS admit_provider_id,
+               ADMISSION_LOCATION AS admission_location,
+               DISCHARGE_LOCATION AS discharge_location, INSURANCE AS insurance,
+               'ENGLISH' AS language, NULL AS marital_status, 'WHITE' AS race,
+               NULL::TIMESTAMP AS edregtime, NULL::TIMESTAMP AS edouttime,
+               HOSPITAL_EXPIRE_FLAG AS hospital_expire_flag
+        FROM ({q3['ADMISSIONS']})
+        UNION ALL
+        SELECT {n + 1} + j % {max(pad_pat, 1)}, {100_000 + n} + j,
+               {_ts("TIMESTAMP '2150-01-01'", '24 * 7 * j')},
+               {_ts("TIMESTAMP '2150-01-01'", '24 * 7 * j + 72')}, NULL::TIMESTAMP,
+               'EW EMER.', NULL, 'EMERGENCY ROOM', 'HOME', 'Medicare', 'ENGLISH', NULL,
+               'WHITE', NULL::TIMESTAMP, NULL::TIMESTAMP, 0
+        FROM range({pad_adm}) r(j)"""
+    return q
+
+
 def _check_filler() -> None:
     """Filler ITEMIDs and drugs must be ones the extraction does not read."""
     import sys
@@ -433,28 +587,36 @@ def _check_filler() -> None:
 
 def write_mimic3(folder: Path, scale: float, fmt: str = "csv.gz", seed: int = 0,
                  threads: int = 2, memory_limit: str = "2GB",
-                 tables: tuple[str, ...] = TABLES) -> pd.DataFrame:
-    """Write the tables for ``scale`` x full MIMIC-III into ``folder`` (``fmt``: ``csv.gz``
-    or ``parquet``); returns the stays frame (for ``expected_cohort`` / ``expected_hr``)."""
+                 tables: tuple[str, ...] | None = None, shape: Shape = MIMIC3) -> pd.DataFrame:
+    """Write the tables for ``scale`` x full MIMIC-III (``shape=MIMIC4``: full MIMIC-IV, in
+    its layout) into ``folder`` (``fmt``: ``csv.gz`` or ``parquet``); returns the stays frame
+    (for ``expected_cohort`` / ``expected_hr``). ``rows.json`` next to the tables: the rows
+    written per table, by MIMIC-III view name."""
     if fmt not in ("csv.gz", "parquet"):
         raise ValueError(f"fmt must be csv.gz or parquet, got {fmt!r}")
     _check_filler()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    stays = stays_frame(scale, seed)
+    stays = stays_frame(scale, seed, shape)
     con = duckdb.connect()
     con.execute(f"SET threads = {int(threads)}")
     con.execute(f"SET memory_limit = '{memory_limit}'")
     con.execute("SET preserve_insertion_order = false")
     con.execute(f"SET temp_directory = '{folder / '.tmp'}'")
     try:
-        q = table_queries(con, stays, scale)
+        q = table_queries(con, stays, scale, shape)
+        files = {t: (t, q[t]) for t in TABLES}
+        if shape.name == "mimic4":
+            q4 = mimic4_queries(q, stays, shape)
+            files = {t: (MIMIC4_FILES[t][0], q4[MIMIC4_FILES[t][0]]) for t in shape.tables}
         rows = {}
-        for t in tables:
-            path = folder / f"{t}.{fmt}"
+        for t in tables or shape.tables:
+            stem, sql = files[t]
+            path = folder / f"{stem}.{fmt}"
+            path.parent.mkdir(parents=True, exist_ok=True)
             opts = ("FORMAT parquet" if fmt == "parquet" else
                     "FORMAT csv, HEADER, COMPRESSION gzip, TIMESTAMPFORMAT '%Y-%m-%d %H:%M:%S'")
-            rows[t] = int(con.execute(f"COPY ({q[t]}) TO '{path}' ({opts})").fetchone()[0])
+            rows[t] = int(con.execute(f"COPY ({sql}) TO '{path}' ({opts})").fetchone()[0])
     finally:
         con.close()
     # rows written per table, next to the tables (the extraction reads only table files)
@@ -462,24 +624,35 @@ def write_mimic3(folder: Path, scale: float, fmt: str = "csv.gz", seed: int = 0,
     return stays
 
 
+def write_mimic4(folder: Path, scale: float, **kw) -> pd.DataFrame:
+    """``write_mimic3`` with MIMIC-IV's shape and layout (module doc)."""
+    return write_mimic3(folder, scale, shape=MIMIC4, **kw)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("folder", type=Path)
-    p.add_argument("--scale", type=float, required=True, help="fraction of full MIMIC-III")
+    p.add_argument("--scale", type=float, required=True, help="fraction of the full release")
+    p.add_argument("--shape", default="mimic3", choices=sorted(SHAPES),
+                   help="mimic3: MIMIC-III v1.4; mimic4: MIMIC-IV v2.2 in its layout")
     p.add_argument("--format", default="csv.gz", choices=["csv.gz", "parquet"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--memory-limit", default="2GB")
     a = p.parse_args()
+    shape = SHAPES[a.shape]
     t = time.perf_counter()
-    stays = write_mimic3(a.folder, a.scale, a.format, a.seed, a.threads, a.memory_limit)
+    stays = write_mimic3(a.folder, a.scale, a.format, a.seed, a.threads, a.memory_limit,
+                         shape=shape)
     rows = json.loads((a.folder / "rows.json").read_text())
     print(f"{len(stays)} stays, expected cohort {len(expected_cohort(stays))}; "
           f"{time.perf_counter() - t:.0f} s")
-    for tab in TABLES:
-        f = a.folder / f"{tab}.{a.format}"
-        print(f"{tab}: {rows[tab]} rows ({FULL_ROWS[tab] * a.scale:.0f} at this scale of full), "
-              f"{f.stat().st_size / 1e6:.1f} MB")
+    for tab in shape.tables:
+        stem = MIMIC4_FILES[tab][0] if shape.name == "mimic4" else tab
+        f = a.folder / f"{stem}.{a.format}"
+        print(f"{tab}: {rows[tab]} rows ({shape.full_rows[tab] * a.scale:.0f} at this scale "
+              f"of full), {f.stat().st_size / 1e6:.1f} MB")
+
 
 if __name__ == "__main__":
     main()

@@ -94,3 +94,55 @@ def test_parquet_extracts_like_csv(synth, tables, tmp_path):
     a = extract_mimic3(folder, threads=1).trajectories
     b = extract_mimic3(tmp_path, threads=1).trajectories
     pd.testing.assert_frame_equal(a, b)
+
+
+@pytest.fixture(scope="module")
+def tables4(synth, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("mimic4-synth")
+    stays = synth.write_mimic4(folder, SCALE, threads=1)
+    return folder, stays
+
+
+def test_mimic4_shape_has_mimic4s_layout_and_proportions(synth, tables4):
+    """Files where MIMIC-IV keeps them, with every column the MIMIC-IV layout reads, at
+    MIMIC-IV v2.2's rows per ICU stay; no CareVue, no neonates; some labs lack hadm_id."""
+    from twinfalsify.sources.mimic4 import FILES, MIMIC4
+
+    folder, stays = tables4
+    n = len(stays)
+    assert n == round(synth.MIMIC4_ROWS["ICUSTAYS"] * SCALE)
+    assert not stays["cv"].any() and not stays["neonate"].any()
+    con = duckdb.connect()
+    for view, stems in FILES.items():
+        if not stems:  # INPUTEVENTS_CV: no MIMIC-IV table
+            assert not list(folder.rglob("*inputevents_cv*"))
+            continue
+        path = folder / f"{stems[0]}.csv.gz"
+        rd = f"read_csv('{path}', header = true, all_varchar = true)"
+        cols = [r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {rd}").fetchall()]
+        assert cols == [c.lower() for c in cols] and set(MIMIC4.columns[view]) <= set(cols)
+        rows = con.execute(f"SELECT count(*) FROM {rd}").fetchone()[0]
+        want = synth.MIMIC4_ROWS[view] * n / synth.MIMIC4_ROWS["ICUSTAYS"]
+        assert abs(rows - want) <= 0.02 * want + 5, (view, rows, want)
+    no_hadm = con.execute(
+        "SELECT avg(CAST(hadm_id IS NULL AS DOUBLE)) FROM "
+        f"read_csv('{folder / 'hosp' / 'labevents.csv.gz'}', header = true)").fetchone()[0]
+    assert 0.01 < no_hadm < 0.03
+
+
+def test_mimic4_extraction_gives_the_cohort_and_values_built_in(synth, tables4):
+    """The MIMIC-IV source on the MIMIC-IV-shaped tables: exactly the built-in cohort and
+    hourly heart rates (lab rows without hadm_id linked by patient and time)."""
+    from twinfalsify.sources.mimic4 import extract_mimic4
+
+    folder, stays = tables4
+    res = extract_mimic4(folder, threads=1)
+    want = synth.expected_cohort(stays)
+    traj = res.trajectories
+    assert 0 < len(want) < len(stays)
+    assert sorted(traj["stay_id"].unique()) == sorted(want)
+    assert res.stays["n_labs_linked_by_time"].sum() > 0  # the labs without hadm_id
+    hr = traj[["stay_id", "t", "HR"]].merge(synth.expected_hr(stays), on=["stay_id", "t"],
+                                            suffixes=("", "_built"))
+    assert len(hr) == len(traj)
+    np.testing.assert_array_equal(hr["HR"], hr["HR_built"])
