@@ -9,9 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 from scipy.stats import beta as beta_dist
+from study_helpers import OneCellBins
 
 from twinfalsify.bounds import TwinNodes, twin_runs
-from twinfalsify.design import WHOLE_SPACE, StateBins
+from twinfalsify.design import WHOLE_SPACE
 from twinfalsify.inference.betting import (
     _order_keys,
     betting_test,
@@ -41,17 +42,6 @@ def _placed(x_runs: list[np.ndarray], failed: list[np.ndarray], n_obs: int = 80,
     )  # fmt: skip
 
 
-class _Bins(StateBins):  # one base cell; 'above' = outcome > 0
-    def __init__(self):
-        pass
-
-    def base_codes(self, x0):
-        return np.zeros(len(x0), dtype=np.int64)
-
-    def above(self, outcome, values, t):
-        return (np.asarray(values) > 0).astype(np.int64)
-
-
 def test_twin_runs_give_each_failed_run_its_plan_index():
     """bounds.twin_runs: the failed run in the middle of the plan keeps its index."""
     k = FEATURES.index("HR")
@@ -60,7 +50,7 @@ def test_twin_runs_give_each_failed_run_its_plan_index():
     nodes = TwinNodes(index={(1,): 0}, values=values, x0=np.zeros((5, len(FEATURES))))
     hyps = pd.DataFrame({"outcome": ["HR"], "t": [1], "actions": [(1,)],
                          "bins": [(WHOLE_SPACE, 1)]})
-    side = twin_runs(hyps, nodes, _Bins())
+    side = twin_runs(hyps, nodes, OneCellBins())
     assert side.values.group(0).tolist() == [1.0, 2.0, 3.0]
     assert side.run.group(0).tolist() == [0, 1, 3]
     assert side.failed_run.group(0).tolist() == [2] and side.n_failed.tolist() == [1]

@@ -145,19 +145,11 @@ def test_study_rejection_under_drop_disappears_under_conservative():
 
 def test_failed_run_counted_only_if_it_could_have_entered():
     """n_failed: a run failing at hour 2 counts unless its hour 1 already left B_1."""
+    from study_helpers import OneCellBins
+
     from twinfalsify.bounds import TwinNodes, twin_side
-    from twinfalsify.design import WHOLE_SPACE, StateBins
+    from twinfalsify.design import WHOLE_SPACE
     from twinfalsify.schema import FEATURES
-
-    class Bins(StateBins):  # one base cell; 'above' = outcome > 0
-        def __init__(self):
-            pass
-
-        def base_codes(self, x0):
-            return np.zeros(len(x0), dtype=np.int64)
-
-        def above(self, outcome, values, t):
-            return (np.asarray(values) > 0).astype(np.int64)
 
     k = FEATURES.index("HR")
     index = {(1,): 0, (1, 2): 1}
@@ -167,7 +159,7 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     nodes = TwinNodes(index=index, values=values, x0=np.zeros((3, len(FEATURES))))
     hyps = pd.DataFrame({"outcome": ["HR", "HR"], "t": [2, 2], "actions": [(1, 2), (1, 2)],
                          "bins": [(WHOLE_SPACE, 1, WHOLE_SPACE), (WHOLE_SPACE,) * 3]})
-    twin, n_failed = twin_side(hyps, nodes, Bins())
+    twin, n_failed = twin_side(hyps, nodes, OneCellBins())
     assert list(n_failed) == [1, 2]  # run 1 left B_1 in hour 1: cannot enter hypothesis 0
     assert list(twin.group(0)) == [5.0] and list(twin.group(1)) == [5.0]
 
