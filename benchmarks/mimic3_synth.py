@@ -619,8 +619,12 @@ def write_mimic3(folder: Path, scale: float, fmt: str = "csv.gz", seed: int = 0,
             rows[t] = int(con.execute(f"COPY ({sql}) TO '{path}' ({opts})").fetchone()[0])
     finally:
         con.close()
-    # rows written per table, next to the tables (the extraction reads only table files)
-    (folder / "rows.json").write_text(json.dumps(rows, indent=1) + "\n")
+    # rows written per table, next to the tables (the extraction reads only table files);
+    # a run given some tables adds to what another run of the same folder wrote
+    rows_file = folder / "rows.json"
+    if tables and rows_file.exists():
+        rows = {**json.loads(rows_file.read_text()), **rows}
+    rows_file.write_text(json.dumps(rows, indent=1) + "\n")
     return stays
 
 
@@ -639,15 +643,21 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--memory-limit", default="2GB")
+    p.add_argument("--tables", default=None,
+                   help="comma-separated MIMIC-III table names to write (default: all); two "
+                   "runs on one folder with complementary lists write the tables in parallel")
     a = p.parse_args()
     shape = SHAPES[a.shape]
+    tables = tuple(a.tables.split(",")) if a.tables else None
+    if tables and (bad := sorted(set(tables) - set(shape.tables))):
+        p.error(f"--tables: unknown table(s) {bad}; choose from {list(shape.tables)}")
     t = time.perf_counter()
     stays = write_mimic3(a.folder, a.scale, a.format, a.seed, a.threads, a.memory_limit,
-                         shape=shape)
+                         tables=tables, shape=shape)
     rows = json.loads((a.folder / "rows.json").read_text())
     print(f"{len(stays)} stays, expected cohort {len(expected_cohort(stays))}; "
           f"{time.perf_counter() - t:.0f} s")
-    for tab in shape.tables:
+    for tab in tables or shape.tables:
         stem = MIMIC4_FILES[tab][0] if shape.name == "mimic4" else tab
         f = a.folder / f"{stem}.{a.format}"
         print(f"{tab}: {rows[tab]} rows ({shape.full_rows[tab] * a.scale:.0f} at this scale "

@@ -11,6 +11,7 @@ from conftest import shared_dir
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3
+from twinfalsify.sources.mimic3.cohort import STEPS
 from twinfalsify.sources.mimic3.hourly import LABS
 from twinfalsify.sources.mimic3.options import PRESETS
 
@@ -148,3 +149,22 @@ def test_specimens_units_and_semantics(demo, preset):
     # GU irrigant in (227488) is subtracted from the urine output read by sofa: ai_clinician
     p = preset.stays.set_index(schema.STAY_ID)
     assert p["n_urine_irrigant_rows"].sum() == 97 and a["n_urine_irrigant_rows"].sum() == 0
+
+
+def test_docs_consort_table_equals_the_extraction_counts():
+    """docs/how-to/mimic3.md's CONSORT table of the demo gives the counts asserted above, per
+    anchor and preset (a cohort change that moves them fails here until the page follows)."""
+    page = (Path(__file__).resolve().parents[1] / "docs" / "how-to" / "mimic3.md").read_text()
+    head = "| step | default, `first_vitals` | default, `intime` | `ai_clinician`, `first_vitals` |"
+    lines = page[page.index(head):].split("\n\n")[0].splitlines()[2:]
+    cells = [[c.strip() for c in line.strip("|").split("|")] for line in lines]
+    n = {col: [int(row[col + 1].replace("*", "").split()[0]) for row in cells]
+         for col in range(4)}
+    assert [row[0] for row in cells] == list(STEPS)
+    assert n[0] == COUNTS["first_vitals"] and n[1] == COUNTS["intime"]
+    assert n[2] == COUNTS_AI_CLINICIAN["first_vitals"] and n[3] == COUNTS_AI_CLINICIAN["intime"]
+    # excluded in brackets: the drop from the step before
+    for col in range(4):
+        shown = [int(row[col + 1].split("(")[1].rstrip(")")) if "(" in row[col + 1] else 0
+                 for row in cells]
+        assert shown == [0] + [a - b for a, b in zip(n[col], n[col][1:], strict=False)]
