@@ -31,6 +31,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import duckdb  # noqa: E402
+import numpy as np  # noqa: E402
 import psutil  # noqa: E402
 
 from twinfalsify.sources.mimic3 import cohort, doses, hourly, tables  # noqa: E402
@@ -189,6 +190,20 @@ def table(paths: list[Path]) -> str:
     return "\n".join(lines)
 
 
+def check_built_in(res, scale: float, seed: int, shape: str) -> dict[str, bool]:
+    """Whether the extraction returned exactly the cohort (stay ids) and hourly heart rates
+    that ``mimic3_synth.py`` built into tables of this scale and seed."""
+    import mimic3_synth  # beside this script
+
+    stays = mimic3_synth.stays_frame(scale, seed, mimic3_synth.SHAPES[shape])
+    want = mimic3_synth.expected_hr(stays).set_index(["stay_id", "t"])["HR"].sort_index()
+    got = res.trajectories.set_index(["stay_id", "t"])["HR"].sort_index()
+    same_ids = set(got.index.get_level_values(0)) == set(want.index.get_level_values(0))
+    same_hr = bool(same_ids and got.index.equals(want.index)
+                   and np.allclose(got.to_numpy(), want.to_numpy(), rtol=0, atol=1e-9))
+    return {"cohort_equal": bool(same_ids), "hr_equal": same_hr}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("folder", type=Path, nargs="?")
@@ -199,6 +214,10 @@ def main() -> None:
     p.add_argument("--temp-dir", type=Path, default=None, help="DuckDB temp_directory")
     p.add_argument("--no-count", action="store_true", help="skip counting the input rows")
     p.add_argument("--no-stage", action="store_true", help="query the files directly")
+    p.add_argument("--check-scale", type=float, default=None,
+                   help="the tables' mimic3_synth.py --scale: after timing, check that the "
+                   "cohort and its hourly HR are exactly the ones the generator built in")
+    p.add_argument("--check-seed", type=int, default=0, help="the tables' --seed")
     a = p.parse_args()
     if a.table:
         print(table(a.table))
@@ -232,7 +251,11 @@ def main() -> None:
            "load_max": max(sampler.loads, default=load0[0]),
            "cpu_count": os.cpu_count(), "ram_gb": psutil.virtual_memory().total / 2**30,
            "stages": records}
+    if a.check_scale is not None:
+        out["built_in"] = check_built_in(res, a.check_scale, a.check_seed, shape)
     a.out.write_text(json.dumps(out, indent=1, default=str) + "\n")
+    if "built_in" in out:
+        print(f"built-in cohort and HR reproduced: {out['built_in']}")
     print(f"cohort {out['cohort']}; wall {wall:.1f} s, cpu {cpu:.1f} s, peak "
           f"{out['peak_rss_mb']:.0f} MB, load {out['load_mean']:.2f}")
     top = {}
