@@ -54,6 +54,7 @@ Run:  PYTHONPATH=src python benchmarks/mimic3_synth.py OUT_DIR --scale 0.01 [--f
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import time
 from dataclasses import dataclass
@@ -622,15 +623,12 @@ def write_mimic3(folder: Path, scale: float, fmt: str = "csv.gz", seed: int = 0,
     # rows written per table, next to the tables (the extraction reads only table files);
     # a run given some tables adds to what another run of the same folder wrote
     rows_file = folder / "rows.json"
-    if tables and rows_file.exists():
-        rows = {**json.loads(rows_file.read_text()), **rows}
-    rows_file.write_text(json.dumps(rows, indent=1) + "\n")
+    with open(folder / ".rows.lock", "w") as lock:  # two runs may finish at once
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if tables and rows_file.exists():
+            rows = {**json.loads(rows_file.read_text()), **rows}
+        rows_file.write_text(json.dumps(rows, indent=1) + "\n")
     return stays
-
-
-def write_mimic4(folder: Path, scale: float, **kw) -> pd.DataFrame:
-    """``write_mimic3`` with MIMIC-IV's shape and layout (module doc)."""
-    return write_mimic3(folder, scale, shape=MIMIC4, **kw)
 
 
 def main() -> None:

@@ -33,11 +33,15 @@ def synth():
     return _synth()
 
 
+def _written(synth, tmp_path_factory, shape: str):
+    """(folder, stays) of the tables of ``shape`` at SCALE."""
+    folder = tmp_path_factory.mktemp(f"{shape}-synth")
+    return folder, synth.write_mimic3(folder, SCALE, threads=1, shape=synth.SHAPES[shape])
+
+
 @pytest.fixture(scope="module")
 def tables(synth, tmp_path_factory):
-    folder = tmp_path_factory.mktemp("mimic3-synth")
-    stays = synth.write_mimic3(folder, SCALE, threads=1)
-    return folder, stays
+    return _written(synth, tmp_path_factory, "mimic3")
 
 
 def test_tables_have_full_mimic_proportions(synth, tables):
@@ -98,9 +102,7 @@ def test_parquet_extracts_like_csv(synth, tables, tmp_path):
 
 @pytest.fixture(scope="module")
 def tables4(synth, tmp_path_factory):
-    folder = tmp_path_factory.mktemp("mimic4-synth")
-    stays = synth.write_mimic4(folder, SCALE, threads=1)
-    return folder, stays
+    return _written(synth, tmp_path_factory, "mimic4")
 
 
 def test_mimic4_shape_has_mimic4s_layout_and_proportions(synth, tables4):

@@ -29,6 +29,16 @@ from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes
 _CHUNK_CELLS = 40_000_000  # booleans per chunk (H_chunk x n x (T + 1)): bounded memory
 
 
+def _scatter_rows(hs: np.ndarray, rows: np.ndarray,
+                  *targets: tuple[list[np.ndarray], np.ndarray]) -> None:
+    """For each (groups, values) pair: ``values`` (aligned with ``rows``, row-sorted indices
+    into ``hs``) split by row, row j's part stored as ``groups[hs[j]]``."""
+    cuts = np.searchsorted(rows, np.arange(1, len(hs)))
+    for groups, values in targets:
+        for j, part in enumerate(np.split(values, cuts)):
+            groups[hs[j]] = part
+
+
 def _chunks(size: int, n: int, width: int) -> list[slice]:
     step = max(1, _CHUNK_CELLS // max(1, n * width))
     return [slice(i, min(i + step, size)) for i in range(0, size, step)]
@@ -96,10 +106,7 @@ def observational_side(
                 r = t_h[hs] == t
                 cum[r] = (np.cumsum(enter[r][:, order[int(t)]], axis=1) - 1)[:, rank[int(t)]]
             pos = cum[hh, ii]
-            cuts = np.searchsorted(hh, np.arange(1, len(hs)))
-            for j, (v, p) in enumerate(zip(np.split(vals, cuts), np.split(pos, cuts), strict=True)):
-                groups[hs[j]] = v
-                pos_groups[hs[j]] = p
+            _scatter_rows(hs, hh, (groups, vals), (pos_groups, pos))
     return ObservationalSide(n=n_enter, follow=Ragged.from_groups(groups),
                              follow_pos=Ragged.from_groups(pos_groups))
 
@@ -209,16 +216,10 @@ def twin_runs(
             could = failed & in_b0 & ~left_b
             n_failed[hs] = could.sum(axis=1)
             fh, fi = np.nonzero(could)
-            fcuts = np.searchsorted(fh, np.arange(1, len(hs)))
-            for j, r in enumerate(np.split(fi, fcuts)):
-                fail_groups[hs[j]] = r
+            _scatter_rows(hs, fh, (fail_groups, fi))
             last = vals[np.arange(len(hs)), t_h[hs] - 1, :]  # (h, m)
             hh, ii = np.nonzero(enter)
-            cuts = np.searchsorted(hh, np.arange(1, len(hs)))
-            for j, (v, r) in enumerate(zip(np.split(last[hh, ii], cuts), np.split(ii, cuts),
-                                           strict=True)):
-                groups[hs[j]] = v
-                run_groups[hs[j]] = r
+            _scatter_rows(hs, hh, (groups, last[hh, ii]), (run_groups, ii))
     return TwinSide(Ragged.from_groups(groups), n_failed, Ragged.from_groups(run_groups),
                     Ragged.from_groups(fail_groups))
 
