@@ -313,15 +313,7 @@ def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.nda
         return Ragged(np.tile(r.values, k),
                       np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
 
-    fp = samples.follow_pos
-    t = HypothesisSamples(np.tile(samples.y_lo, k), np.tile(samples.y_up, k),
-                          np.tile(samples.n, k), tile_r(samples.follow), tile_r(samples.twin),
-                          keys=np.tile(samples.hyp_keys, k),
-                          follow_pos=None if fp is None else tile_r(fp),
-                          twin_run=None if samples.twin_run is None
-                          else tile_r(samples.twin_run),
-                          failed_run=None if samples.failed_run is None
-                          else tile_r(samples.failed_run))
+    t = samples.per_hypothesis(lambda a: np.tile(a, k), tile_r)
     return t, np.repeat(np.arange(k), len(samples))
 
 
@@ -607,16 +599,7 @@ def _ragged_subset(r: Ragged, keep: np.ndarray) -> Ragged:
 
 
 def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
-    return HypothesisSamples(
-        y_lo=samples.y_lo[keep], y_up=samples.y_up[keep], n=samples.n[keep],
-        follow=_ragged_subset(samples.follow, keep), twin=_ragged_subset(samples.twin, keep),
-        keys=samples.hyp_keys[keep],
-        follow_pos=None if samples.follow_pos is None else _ragged_subset(samples.follow_pos,
-                                                                          keep),
-        twin_run=None if samples.twin_run is None else _ragged_subset(samples.twin_run, keep),
-        failed_run=None if samples.failed_run is None else _ragged_subset(samples.failed_run,
-                                                                          keep),
-    )
+    return samples.per_hypothesis(lambda a: a[keep], lambda r: _ragged_subset(r, keep))
 
 
 def default_tune_alpha(h: int) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -209,28 +210,22 @@ class HypothesisSamples:
 
     def with_bounds(self, y_lo: np.ndarray, y_up: np.ndarray) -> HypothesisSamples:
         """Same samples, other [y_lo, y_up] (e.g. the sensitivity sweep's widened range)."""
+        return replace(self, y_lo=np.asarray(y_lo, float), y_up=np.asarray(y_up, float))
+
+    def per_hypothesis(self, arrays: Callable[[np.ndarray], np.ndarray],
+                       ragged: Callable[[Ragged], Ragged]) -> HypothesisSamples:
+        """The samples with every per-hypothesis field mapped: ``arrays`` on y_lo, y_up, n
+        and the keys, ``ragged`` on every ragged field (a selection, a tiling, ...)."""
+        def opt(r: Ragged | None) -> Ragged | None:
+            return None if r is None else ragged(r)
+
         return HypothesisSamples(
-            y_lo=np.asarray(y_lo, float),
-            y_up=np.asarray(y_up, float),
-            n=self.n,
-            follow=self.follow,
-            twin=self.twin,
-            keys=self.keys,
-            follow_pos=self.follow_pos,
-            twin_run=self.twin_run,
-            failed_run=self.failed_run,
+            y_lo=arrays(self.y_lo), y_up=arrays(self.y_up), n=arrays(self.n),
+            follow=ragged(self.follow), twin=ragged(self.twin), keys=arrays(self.hyp_keys),
+            follow_pos=opt(self.follow_pos), twin_run=opt(self.twin_run),
+            failed_run=opt(self.failed_run),
         )
 
     def take(self, index: np.ndarray) -> HypothesisSamples:
         index = np.asarray(index, dtype=np.int64)
-        return HypothesisSamples(
-            y_lo=self.y_lo[index],
-            y_up=self.y_up[index],
-            n=self.n[index],
-            follow=self.follow.take(index),
-            twin=self.twin.take(index),
-            keys=self.hyp_keys[index],
-            follow_pos=None if self.follow_pos is None else self.follow_pos.take(index),
-            twin_run=None if self.twin_run is None else self.twin_run.take(index),
-            failed_run=None if self.failed_run is None else self.failed_run.take(index),
-        )
+        return self.per_hypothesis(lambda a: a[index], lambda r: r.take(index))
