@@ -36,8 +36,9 @@ import pandas as pd
 import yaml
 
 from twinfalsify import bounds, design
-from twinfalsify.falsify import make_methods, run_tests
-from twinfalsify.inference.sequential import adaptive_test, hypothesis_paths, node_runs
+from twinfalsify.bounds import hypothesis_paths
+from twinfalsify.falsify import adaptive_test, make_methods, run_tests
+from twinfalsify.inference.sequential import node_runs
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import shard_hypotheses
 from twinfalsify.runs.registry import make_twin
@@ -133,7 +134,8 @@ def compare(st: Study, name: str, spec: dict, batch_sizes: list[int], methods: d
     shard_of = np.zeros(len(hyps), np.int64)
     for k in range(len(st.plan.shards)):
         shard_of[shard_hypotheses(hyps, st.plan, k)] = k
-    tv, nf = bounds.twin_side(hyps, nodes, st.states)
+    side = bounds.twin_runs(hyps, nodes, st.states)
+    tv, nf = side, side.n_failed
     res = run_tests(hyps, bounds.hypothesis_samples(hyps, st.obs, tv), nf,
                     make_methods(methods, seed), alpha=alpha)
     fixed = res.groupby("method")["rejected"].sum().to_dict()

@@ -25,7 +25,7 @@ the algorithms, not two orders' luck). ``hoeffding``: mean +- sqrt(log(2/alpha) 
 clipped to [0, 1].
 
 Variants (the library's ``betting`` options, and order-free constructions built from the
-library's capital ``log_capital``/``_bound``):
+library's capital ``log_capital``/``capital_bound``):
 
 - ``plugin`` (default): WSR plug-in bets in the data order (no seed), running maximum.
 - ``plugin:16``: terminal capital averaged over 16 data orders.
@@ -57,8 +57,8 @@ from scipy import stats
 from twinfalsify.inference.betting import (
     C_TRUNC,
     OrderedSide,
-    _bound,
     betting_bounds,
+    capital_bound,
     ordered_sides,
 )
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
@@ -132,7 +132,8 @@ def constant_ci(x: np.ndarray, alpha: float, lams: list[np.ndarray]
     side = OrderedSide(np.tile(x.ravel(), j), np.concatenate([np.repeat(lam, n) for lam in lams]),
                        np.arange(0, j * r * n + 1, n, dtype=np.int64), j)
     lev = np.full(r, np.log(2 / alpha))
-    return _bound(side, lev, +1, False, C_TRUNC), _bound(side, lev, -1, False, C_TRUNC)
+    return (capital_bound(side, lev, +1, False, C_TRUNC),
+            capital_bound(side, lev, -1, False, C_TRUNC))
 
 
 def bet_at(var: np.ndarray, n: int, alpha: float) -> np.ndarray:

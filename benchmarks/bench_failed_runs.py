@@ -36,8 +36,11 @@ from bench_adaptive import build, in_process  # noqa: E402
 
 from twinfalsify import bounds  # noqa: E402
 from twinfalsify.bounds import TwinNodes  # noqa: E402
-from twinfalsify.falsify import make_methods, run_tests  # noqa: E402
-from twinfalsify.inference.sequential import adaptive_test  # noqa: E402
+from twinfalsify.falsify import (  # noqa: E402
+    adaptive_test,  # noqa: E402
+    make_methods,
+    run_tests,
+)
 from twinfalsify.runs import plan as tp  # noqa: E402
 from twinfalsify.runs.adaptive import shard_hypotheses  # noqa: E402
 from twinfalsify.runs.registry import make_twin  # noqa: E402
@@ -92,7 +95,8 @@ def main(argv: list[str] | None = None) -> None:
             row = {"twin": name, "failures": scenario,
                    "failed_node_runs": round(float(np.isnan(nodes.values[:, :, 0]).mean()), 4)}
             if args.fixed:
-                tv, nf = bounds.twin_side(st.hyps, nodes, st.states)
+                tv = bounds.twin_runs(st.hyps, nodes, st.states)
+                nf = tv.n_failed
                 samples = bounds.hypothesis_samples(st.hyps, st.obs, tv)
             for mode in ("drop", "conservative") if scenario != "none" else ("drop",):
                 o = adaptive_test(st.hyps, st.obs, nodes, st.states, batch_size=args.batch_size,

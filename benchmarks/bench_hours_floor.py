@@ -32,16 +32,15 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import minimize_scalar
 
+from twinfalsify.bounds import hypothesis_paths, twin_runs_indexed
 from twinfalsify.calibration import replicates as R
 from twinfalsify.calibration.config import load_config
-from twinfalsify.inference.betting import _bound
+from twinfalsify.inference.capital import capital_bound
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.inference.sequential import (
     cs_bets,
     family_sizes,
-    hypothesis_paths,
     node_needs,
-    twin_runs_indexed,
 )
 
 C = 0.9
@@ -72,7 +71,7 @@ def stops(rep, base, runs, fixed: np.ndarray, alpha: float, variant: str,
             else q[h, col]
         if variant == "oracle_L":  # the observational bound at level a (union: a/2 a side)
             side = (base.lo, base.up)[col].take(np.array([h]))
-            at = float(_bound(side, np.array([np.log(2 / a)]), (+1, -1)[col], True, C)[0])
+            at = float(capital_bound(side, np.array([np.log(2 / a)]), (+1, -1)[col], True, C)[0])
         z = (at - x) if col == 0 else (x - at)  # > 0: evidence against the null
         worst = at if col == 0 else 1 - at  # rescaled distance the worst value can move
         level = {"oracle_half": np.log(2 / a), "oracle_L": np.log(2 / a),

@@ -160,7 +160,8 @@ def power_comparison() -> None:
     Quoted in docs/explanation/statistics.md.
     """
     from twinfalsify.inference.bernstein import bernstein_radius, sample_variances
-    from twinfalsify.inference.betting import _bound, ordered_sides
+    from twinfalsify.inference.betting import ordered_sides
+    from twinfalsify.inference.capital import capital_bound
     from twinfalsify.inference.hoeffding import hoeffding_radius
 
     rng = np.random.default_rng(0)
@@ -177,7 +178,7 @@ def power_comparison() -> None:
             for alpha in (0.05, 1e-5):
                 hr = hoeffding_radius(1.0, n, alpha)
                 tw = ordered_sides(s, alpha / 2)[2]  # bets tuned at the level evaluated
-                up = _bound(tw, np.full(reps, np.log(2 / alpha)), -1, True, C_TRUNC)
+                up = capital_bound(tw, np.full(reps, np.log(2 / alpha)), -1, True, C_TRUNC)
                 rb = np.mean(up - s.q_twin_hat) / hr
                 re = np.mean(bernstein_radius(v, np.full(reps, n), np.ones(reps), alpha)) / hr
                 print(f"  {name:15s} n={n:5d} alpha={alpha:g}: betting {rb:.2f}  "

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from twinfalsify import bounds, design
+from twinfalsify import bounds, design, twin_tests
 from twinfalsify.falsify import make_methods, run_tests
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.registry import make_twin
@@ -75,8 +75,7 @@ def twin_samples(study: Study, twin):
         ignore_index=True,
     )
     nodes = tp.load_nodes(runs, study.plan, study.x0)
-    side = bounds.twin_runs(study.hyps, nodes, study.states)
-    return bounds.hypothesis_samples(study.hyps, study.obs, side), side.n_failed
+    return twin_tests.twin_samples(study.hyps, study.obs, nodes, study.states)
 
 
 class OneCellBins(design.StateBins):

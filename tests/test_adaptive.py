@@ -14,8 +14,9 @@ from study_helpers import build_study
 from test_twin_runner import ENV
 
 from twinfalsify import bounds
+from twinfalsify.bounds import twin_runs_indexed
 from twinfalsify.design import WHOLE_SPACE
-from twinfalsify.inference.sequential import adaptive_test, twin_runs_indexed
+from twinfalsify.falsify import adaptive_test
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.adaptive import (
     adaptive_results,
@@ -47,7 +48,7 @@ def study_and_twin(tmp_path_factory):
 def test_indexed_twin_side_agrees_with_bounds(study_and_twin):
     study, _, runs, _ = study_and_twin
     nodes = tp.load_nodes(runs, study.plan, study.x0)
-    ref, _ = bounds.twin_side(study.hyps, nodes, study.states)
+    ref = bounds.twin_runs(study.hyps, nodes, study.states).values
     got = twin_runs_indexed(study.hyps, nodes, study.states)
     np.testing.assert_array_equal(got.values.offsets, ref.offsets)
     np.testing.assert_array_equal(got.values.values, ref.values)

@@ -128,7 +128,8 @@ def test_twin_side_matches_brute_force():
     values[failed_node, failed_run, :] = np.nan  # one failed run at the first node
     x0 = x[RNG.integers(0, len(x), m), 0, :]
     nodes = TwinNodes(index=index, values=values, x0=x0)
-    twin, n_failed = bounds.twin_side(hyps, nodes, states)
+    side = bounds.twin_runs(hyps, nodes, states)
+    twin, n_failed = side.values, side.n_failed
     for h, row in hyps.iterrows():
         k = FEATURES.index(row.outcome)
         base = states.base_codes(x0)

@@ -12,8 +12,8 @@ import pytest
 from scipy import stats
 
 from twinfalsify import calibration as cal
+from twinfalsify.falsify import adaptive_test
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
-from twinfalsify.inference.sequential import adaptive_test
 from twinfalsify.runs import plan as tp
 from twinfalsify.schema import OUTCOMES, ContractError
 from twinfalsify.twins.builtin import BiasedTwin

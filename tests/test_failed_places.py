@@ -220,10 +220,8 @@ def test_study_failures_are_placed_counted_and_never_below_drop():
     lost = rng.random(nodes.values.shape[:2]) < 0.1
     nodes.values[lost] = np.nan
     side = bounds.twin_runs(st.hyps, nodes, st.states)
-    vals, nf = bounds.twin_side(st.hyps, nodes, st.states)
-    np.testing.assert_array_equal(side.n_failed, nf)
+    nf = side.n_failed
     np.testing.assert_array_equal(side.failed_run.sizes, nf)
-    np.testing.assert_array_equal(side.values.values, vals.values)
     for h in range(len(st.hyps)):
         both = np.concatenate([side.run.group(h), side.failed_run.group(h)])
         assert len(np.unique(both)) == len(both)

@@ -147,7 +147,7 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     """n_failed: a run failing at hour 2 counts unless its hour 1 already left B_1."""
     from study_helpers import OneCellBins
 
-    from twinfalsify.bounds import TwinNodes, twin_side
+    from twinfalsify.bounds import TwinNodes, twin_runs
     from twinfalsify.design import WHOLE_SPACE
     from twinfalsify.schema import FEATURES
 
@@ -159,7 +159,8 @@ def test_failed_run_counted_only_if_it_could_have_entered():
     nodes = TwinNodes(index=index, values=values, x0=np.zeros((3, len(FEATURES))))
     hyps = pd.DataFrame({"outcome": ["HR", "HR"], "t": [2, 2], "actions": [(1, 2), (1, 2)],
                          "bins": [(WHOLE_SPACE, 1, WHOLE_SPACE), (WHOLE_SPACE,) * 3]})
-    twin, n_failed = twin_side(hyps, nodes, OneCellBins())
+    side = twin_runs(hyps, nodes, OneCellBins())
+    twin, n_failed = side.values, side.n_failed
     assert list(n_failed) == [1, 2]  # run 1 left B_1 in hour 1: cannot enter hypothesis 0
     assert list(twin.group(0)) == [5.0] and list(twin.group(1)) == [5.0]
 

@@ -21,13 +21,14 @@ import pandas as pd
 import pytest
 from study_helpers import build_study
 
-from twinfalsify import bounds, figures, summary, tables
+from twinfalsify import figures, summary, tables
 from twinfalsify.design import WHOLE_SPACE, action_codes, state_codes
 from twinfalsify.falsify import make_methods, run_tests
 from twinfalsify.runs import plan as tp
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, to_array
 from twinfalsify.sources.synthetic import SyntheticWorld
+from twinfalsify.twin_tests import twin_samples
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,12 +47,11 @@ def st(tmp_path_factory) -> summary.StudyTwin:
          for k in range(len(study.plan.shards))], ignore_index=True,
     )  # fmt: skip
     nodes = tp.load_nodes(runs, study.plan, study.x0)
-    twin_vals, n_failed = bounds.twin_side(study.hyps, nodes, study.states)
-    samples = bounds.hypothesis_samples(study.hyps, study.obs, twin_vals)
+    samples, n_failed = twin_samples(study.hyps, study.obs, nodes, study.states)
     res = run_tests(study.hyps, samples, n_failed, make_methods({"hoeffding": {}}, 0))
     assert res["rejected"].sum() > 0, "fixture must have rejections"
-    return summary.StudyTwin(study.hyps, samples, res, study.d0, study.d, study.actions,
-                             study.states, nodes)  # fmt: skip
+    return summary.StudyTwin(study.hyps, samples, n_failed, res, study.d0, study.d,
+                             study.actions, study.states, nodes)  # fmt: skip
 
 
 def _png_ok(fig, path) -> None:

@@ -9,7 +9,7 @@ import pytest
 from twinfalsify.inference.hoeffding import hoeffding_test
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
-from twinfalsify.inference.sensitivity import plot_sensitivity, sensitivity_sweep, widened
+from twinfalsify.inference.sensitivity import sensitivity_sweep, sweep_pvalues, widened
 
 
 def _case(seed=0, h=120):
@@ -50,17 +50,84 @@ def test_rejections_fall_as_the_range_widens():
     np.testing.assert_allclose(w.y_up, 100 * 1.1)
 
 
-def test_bad_input_and_figure(tmp_path):
+def test_bad_input_and_table_shape():
     s, g = _case(h=9)
     with pytest.raises(ValueError, match="group"):
         sensitivity_sweep(s, [0.0], {"h": hoeffding_test}, group=g[:3])
+    with pytest.raises(ValueError, match="family"):
+        sensitivity_sweep(s, [0.0], {"h": hoeffding_test}, family=g[:3])
     with pytest.raises(ValueError, match="empty range"):
         widened(s, -3.0)
     t = sensitivity_sweep(s, [0.0, 0.5], {"h": hoeffding_test, "h4": lambda x: hoeffding_test(
         x, factor=4)}, group=g)
-    assert list(t.columns) == ["delta", "method", "group", "n_hypotheses", "n_rejected"]
+    assert list(t.columns) == ["delta", "method", "family", "group", "n_hypotheses",
+                               "n_rejected"]
     assert len(t) == 2 * 2 * 3
-    out = plot_sensitivity(t, tmp_path / "fig" / "sens.png")
-    assert out.exists() and out.stat().st_size > 1000
-    with pytest.raises(ValueError, match="lacks columns"):
-        plot_sensitivity(pd.DataFrame({"delta": [0]}), tmp_path / "x.png")
+
+
+def _with_failures(seed=3, h=60):
+    """Samples with failed runs at their places and values that cross the bounds (clipping
+    moves with Delta)."""
+    rng = np.random.default_rng(seed)
+    n = rng.integers(100, 400, h)
+    nf = (n * rng.uniform(0.5, 1, h)).astype(int)
+    follow = Ragged.from_groups([rng.uniform(55, 105, k) for k in nf])
+    m = 150
+    twin_groups, run_groups, fail_groups = [], [], []
+    for i in range(h):
+        runs = rng.permutation(m)
+        k_ok, k_fail = int(rng.integers(30, 120)), int(rng.integers(0, 8))
+        ok = np.sort(runs[:k_ok])
+        twin_groups.append(rng.uniform(50, 110, k_ok) + rng.uniform(-15, 15))
+        run_groups.append(ok)
+        fail_groups.append(np.sort(runs[k_ok:k_ok + k_fail]))
+    s = HypothesisSamples(
+        np.full(h, 60.0), np.full(h, 100.0), n.astype(np.int64), follow,
+        Ragged.from_groups(twin_groups), keys=np.arange(h) * 7 + 3,
+        follow_pos=Ragged.from_groups([np.sort(rng.choice(n[i], nf[i], replace=False))
+                                       for i in range(h)]),
+        twin_run=Ragged.from_groups(run_groups), failed_run=Ragged.from_groups(fail_groups),
+    )  # fmt: skip
+    return s, s.failed_run.sizes.astype(np.int64)
+
+
+@pytest.mark.parametrize("failed_runs", ["conservative", "drop"])
+def test_delta_zero_equals_run_tests_with_failed_runs(failed_runs):
+    """At Delta = 0 the sweep gives exactly the main analysis' decisions, failed runs
+    included (conservative: at their places), for every method and each family."""
+    from twinfalsify.falsify import make_methods, run_tests
+
+    s, f = _with_failures()
+    assert f.sum() > 0
+    h = len(s)
+    kind = np.where(np.arange(h) % 2, "causal", "manski")
+    outcome = np.array(["HR", "MeanBP", "SysBP"])[np.arange(h) % 3]
+    hyps = pd.DataFrame({"hyp_id": np.arange(h), "kind": kind, "outcome": outcome, "t": 1})
+    methods = make_methods({"hoeffding": {}, "betting": {}, "bootstrap": {"min_n": 10}}, 5)
+    res = run_tests(hyps, s, f, methods, alpha=0.2, correction="holm", failed_runs=failed_runs)
+    sweep = sensitivity_sweep(s, [0.0, 0.1], methods, 0.2, "holm", group=outcome,
+                              n_failed=f, failed_runs=failed_runs, family=kind,
+                              per_hypothesis=("hoeffding", "betting"))
+    want = res.groupby(["method", "kind", "outcome"])["rejected"].sum()
+    got = sweep[sweep["delta"] == 0.0].set_index(["method", "family", "group"])["n_rejected"]
+    assert want.sum() > 0
+    for key, n_rej in want.items():
+        assert got[key] == n_rej, key
+
+
+def test_tiled_widenings_equal_one_call_per_widening():
+    """Betting on every widening at once (tiled, tuning fixed) equals one call per widening
+    to the crossing search's accuracy (tol = 1e-3 in log K*), and Delta = 0 bit for bit."""
+    from functools import partial
+
+    from twinfalsify.inference.betting import betting_test
+
+    s, f = _with_failures(seed=4, h=40)
+    deltas = [0.0, 0.02, 0.1, 0.3]
+    m = partial(betting_test, alpha=0.05)
+    one = sweep_pvalues(m, s, f, deltas, "conservative", per_hypothesis=False)
+    tiled = sweep_pvalues(m, s, f, deltas, "conservative", per_hypothesis=True)
+    for a, b in zip(one, tiled, strict=True):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_allclose(a, b, rtol=2e-3, atol=0)
+    assert not np.allclose(one[0][0], one[0][-1])  # the widenings change the p-values

@@ -22,7 +22,9 @@ PKG = SRC / "twinfalsify"
 LAYERS: list[tuple[str, ...]] = [
     ("twinfalsify", "schema", "io", "noise", "provenance", "unitscreen"),
     ("sources",),
-    ("split", "design", "bounds", "inference", "falsify", "tables"),
+    ("split", "design", "inference", "tables"),
+    ("bounds", "stored_runs"),
+    ("falsify", "twin_tests"),
     ("twins",),
     ("runs", "studyconfig"),
     ("pulse",),

@@ -7,17 +7,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from twinfalsify.bounds import ObservationalSide
 from twinfalsify.inference.betting import OrderedSide, log_capital
 from twinfalsify.inference.multiple_testing import correct
-from twinfalsify.inference.samples import Ragged
+from twinfalsify.inference.samples import ObservationalSide, Ragged, TwinRuns
 from twinfalsify.inference.sequential import (
     CURTAILED,
     FUTILE,
     REJECTED,
     UNDECIDED,
     SequentialState,
-    TwinRuns,
     cs_bets,
     future_bet_bound,
     node_runs,

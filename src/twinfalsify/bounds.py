@@ -20,7 +20,7 @@ import pandas as pd
 
 from twinfalsify.design import WHOLE_SPACE, StateBins, padded, state_codes
 from twinfalsify.inference.order import content_keys
-from twinfalsify.inference.samples import HypothesisSamples, Ragged
+from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide, Ragged, TwinRuns
 
 # TwinNodes lives in schema (a data contract), so the twin stage does not depend on this
 # module: a fix here reruns the tests, not the twin runs (code fingerprints)
@@ -48,16 +48,6 @@ def _bmatch(bins: np.ndarray, codes: np.ndarray) -> np.ndarray:
     """(H, T+1) hypothesis B codes vs (n, T+1) codes -> (H, n, T+1) membership."""
     b = bins[:, None, :]
     return (b == codes[None, :, :]) | (b == WHOLE_SPACE)
-
-
-@dataclass(frozen=True)
-class ObservationalSide:
-    n: np.ndarray  # (H,) entering trajectories
-    follow: Ragged  # raw outcomes of followers
-    # aligned with ``follow``: each follower's position among the hypothesis' n entering
-    # trajectories in the content-keyed order (``inference.order``: the betting test's data
-    # order, independent of the stay numbering); None: unknown
-    follow_pos: Ragged | None = None
 
 
 def observational_side(
@@ -159,13 +149,79 @@ class TwinSide:
     failed_run: Ragged  # the failed runs' plan indices (group sizes = n_failed)
 
 
-def twin_side(
-    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
-) -> tuple[Ragged, np.ndarray]:
-    """(raw twin outcomes of entering ok runs, n_failed per hypothesis): :func:`twin_runs`
-    without the run indices."""
-    side = twin_runs(hyps, nodes, states, t_max)
-    return side.values, side.n_failed
+def hypothesis_paths(hyps: pd.DataFrame, index: dict, t_max: int = T_MAX) -> np.ndarray:
+    """(H, T) node index of a_1:s for s = 1..t (-1 beyond t)."""
+    paths = np.full((len(hyps), t_max), -1, dtype=np.int64)
+    for i, seq in enumerate(hyps["actions"].tolist()):
+        for s in range(1, len(seq) + 1):
+            key = tuple(int(a) for a in seq[:s])
+            if key not in index:
+                raise KeyError(f"twin nodes: no node {key} for hypothesis row {i}")
+            paths[i, s - 1] = index[key]
+    return paths
+
+
+@dataclass(frozen=True)
+class PathBoxes:
+    """One outcome's hypotheses against every run's path: the entry rule's ingredients.
+
+    ``vals`` (h, T, m): run j's value at hour s of the path a_1:s (NaN off the path or
+    failed); ``on_path`` (h, T); ``ok_s`` (h, T, m): that value lies in B_s (True off the
+    path); ``in_b0`` (h, m): the real X_0 of run j lies in B_0.
+    """
+
+    idx: np.ndarray  # hypothesis rows
+    vals: np.ndarray
+    on_path: np.ndarray
+    ok_s: np.ndarray
+    in_b0: np.ndarray
+
+    @property
+    def failed(self) -> np.ndarray:
+        """(h, m) a node of the run's path failed."""
+        return (np.isnan(self.vals) & self.on_path[..., None]).any(axis=1)
+
+    @property
+    def enter(self) -> np.ndarray:
+        """(h, m) the run enters: X_0 in B_0, Xtwin_s in B_s for s = 1..t, nothing failed."""
+        return self.in_b0 & self.ok_s.all(axis=1) & ~self.failed
+
+    @property
+    def could_enter_failed(self) -> np.ndarray:
+        """(h, m) failed runs that could have entered: X_0 in B_0 and no completed hour
+        (before the failure) outside its B_s (such a run cannot enter whatever it did next)."""
+        left_b = (self.on_path[..., None] & ~np.isnan(self.vals) & ~self.ok_s).any(axis=1)
+        return self.failed & self.in_b0 & ~left_b
+
+    def last(self, t: np.ndarray) -> np.ndarray:
+        """(h, m) each run's value at the hypothesis' own hour t."""
+        return self.vals[np.arange(len(self.idx)), t[self.idx] - 1, :]
+
+
+def path_boxes(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX):
+    """Per outcome, in chunks of bounded memory: :class:`PathBoxes`. The one place the entry
+    rule of the twin side reads B-sets (fixed tests, sequential mode, depth truncation)."""
+    paths = hypothesis_paths(hyps, nodes.index, t_max)
+    b_pad = padded(hyps, "bins", t_max + 1)
+    base0 = states.base_codes(nodes.x0)
+    m = nodes.x0.shape[0]
+    for outcome, o_idx in hyps.groupby("outcome", sort=False).indices.items():
+        k = FEATURES.index(outcome)
+        code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
+        vk = nodes.values[:, :, k]  # (n_nodes, m)
+        for sl in _chunks(len(o_idx), m, t_max + 1):
+            idx = o_idx[sl]
+            p = paths[idx]  # (h, T)
+            vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
+            on_path = p >= 0
+            codes = base0[None, None, :] + states.above(
+                outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
+            )
+            bs = b_pad[idx][:, 1:, None]
+            ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
+            b0 = b_pad[idx][:, 0][:, None]
+            yield PathBoxes(idx, vals, on_path, ok_s,
+                            (b0 == WHOLE_SPACE) | (code0[None, :] == b0))
 
 
 def twin_runs(
@@ -176,52 +232,64 @@ def twin_runs(
     A run whose path a_1:1 .. a_1:t has a failed node cannot be evaluated; it is
     left out of the twin sample and counted in n_failed, unless it could not
     have entered whatever the twin did: X_0 outside B_0, or a completed hour
-    s (before the failure) outside B_s. The plan indices place each failed run in the
-    data order of the betting test (``inference.failures``).
+    s (before the failure) outside B_s (:class:`PathBoxes`). The plan indices place each
+    failed run in the data order of the betting test (``inference.failures``).
     """
     h_total = len(hyps)
-    m = nodes.x0.shape[0]
     groups: list[np.ndarray] = [np.zeros(0)] * h_total
     run_groups: list[np.ndarray] = [np.zeros(0)] * h_total
     fail_groups: list[np.ndarray] = [np.zeros(0)] * h_total
     n_failed = np.zeros(h_total, dtype=np.int64)
     t_h = hyps["t"].to_numpy(np.int64)
-    b_pad = padded(hyps, "bins", t_max + 1)
-    paths = np.full((h_total, t_max), -1, dtype=np.int64)
-    for i, seq in enumerate(hyps["actions"].tolist()):
-        for s in range(1, len(seq) + 1):
-            paths[i, s - 1] = nodes.index[tuple(int(a) for a in seq[:s])]
-    base0 = states.base_codes(nodes.x0)
-    for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
-        k = FEATURES.index(outcome)
-        code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
-        vk = nodes.values[:, :, k]  # (n_nodes, m)
-        for sl in _chunks(len(idx), m, t_max + 1):
-            hs = idx[sl]
-            p = paths[hs]  # (h, T)
-            vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
-            on_path = p >= 0
-            failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)  # (h, m)
-            codes = base0[None, None, :] + states.above(
-                outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
-            )
-            bs = b_pad[hs][:, 1:, None]
-            ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
-            b0 = b_pad[hs][:, 0][:, None]
-            in_b0 = (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
-            enter = in_b0 & ok_s.all(axis=1) & ~failed
-            # A failed run whose completed hours already left B_1:s cannot enter
-            # whatever it would have done next: not counted as failed.
-            left_b = (on_path[..., None] & ~np.isnan(vals) & ~ok_s).any(axis=1)
-            could = failed & in_b0 & ~left_b
-            n_failed[hs] = could.sum(axis=1)
-            fh, fi = np.nonzero(could)
-            _scatter_rows(hs, fh, (fail_groups, fi))
-            last = vals[np.arange(len(hs)), t_h[hs] - 1, :]  # (h, m)
-            hh, ii = np.nonzero(enter)
-            _scatter_rows(hs, hh, (groups, last[hh, ii]), (run_groups, ii))
+    for box in path_boxes(hyps, nodes, states, t_max):
+        hs = box.idx
+        could = box.could_enter_failed
+        n_failed[hs] = could.sum(axis=1)
+        fh, fi = np.nonzero(could)
+        _scatter_rows(hs, fh, (fail_groups, fi))
+        last = box.last(t_h)
+        hh, ii = np.nonzero(box.enter)
+        _scatter_rows(hs, hh, (groups, last[hh, ii]), (run_groups, ii))
     return TwinSide(Ragged.from_groups(groups), n_failed, Ragged.from_groups(run_groups),
                     Ragged.from_groups(fail_groups))
+
+
+def twin_runs_indexed(
+    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+) -> TwinRuns:
+    """:func:`twin_runs` as the sequential mode reads it: the entering runs' outcomes in
+    X_0 order with their positions, and the (H, m) masks of X_0 in B_0 and failed runs."""
+    h_total = len(hyps)
+    m = nodes.x0.shape[0]
+    t_h = hyps["t"].to_numpy(np.int64)
+    in_b0 = np.zeros((h_total, m), dtype=bool)
+    failed_all = np.zeros((h_total, m), dtype=bool)
+    enter_all = np.zeros((h_total, m), dtype=bool)
+    last_all = np.zeros((h_total, m))
+    for box in path_boxes(hyps, nodes, states, t_max):
+        in_b0[box.idx] = box.in_b0
+        failed_all[box.idx] = box.could_enter_failed
+        enter_all[box.idx] = box.enter
+        last_all[box.idx] = box.last(t_h)
+    hh, ii = np.nonzero(enter_all)  # row-major: X_0 order within each hypothesis
+    sizes = np.bincount(hh, minlength=h_total)
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return TwinRuns(Ragged(last_all[hh, ii], offsets), ii.astype(np.int64), in_b0, failed_all)
+
+
+def reachable(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
+              ) -> np.ndarray:
+    """(H, T, m) bool: run j can still enter hypothesis h when hour s of its path begins:
+    X_0 in B_0 and every completed hour s' < s in B_s' (a failed, NaN hour counts as
+    inside: it cannot be shown to have left). Hour s of run j is needed for h only then
+    (*depth truncation*: a run that left B_s' never enters h, whatever it does next)."""
+    out = np.zeros((len(hyps), t_max, nodes.x0.shape[0]), dtype=bool)
+    for box in path_boxes(hyps, nodes, states, t_max):
+        inside = box.ok_s | np.isnan(box.vals)
+        before = np.concatenate([np.ones_like(inside[:, :1]),
+                                 np.logical_and.accumulate(inside[:, :-1], axis=1)], axis=1)
+        out[box.idx] = box.in_b0[:, None, :] & before
+    return out
 
 
 def hypothesis_samples(

@@ -8,12 +8,25 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from twinfalsify.bounds import hypothesis_paths, reachable, twin_runs_indexed
+from twinfalsify.design import StateBins
 from twinfalsify.inference import registry
+from twinfalsify.inference.capital import C_TRUNC
 from twinfalsify.inference.failures import MODES as FAILED_RUN_MODES
 from twinfalsify.inference.failures import failure_pvalues
-from twinfalsify.inference.multiple_testing import correct
-from twinfalsify.inference.samples import HypothesisSamples
-from twinfalsify.schema import ContractError
+from twinfalsify.inference.multiple_testing import correct_within
+from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide, TwinRuns
+from twinfalsify.inference.sequential import (
+    HOLM_AWARE,
+    AdaptiveOutcome,
+    SequentialState,
+    correct_by_family,
+    node_needs,
+    node_runs,
+    paper_hours,
+    run_to_stop,
+)
+from twinfalsify.schema import ContractError, TwinNodes
 
 Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
 
@@ -24,9 +37,11 @@ RESULT_COLUMNS = (
 )  # fmt: skip
 
 
-def make_methods(spec: Mapping[str, Mapping[str, Any]], seed: int) -> dict[str, Method]:
-    """Config ``testing.methods: {name: {options}}`` -> callables (see inference.registry)."""
-    return {name: registry.make(name, opts, seed) for name, opts in spec.items()}
+def make_methods(spec: Mapping[str, Mapping[str, Any]], seed: int,
+                 alpha: float = 0.05) -> dict[str, Method]:
+    """Config ``testing.methods: {name: {options}}`` -> callables (see inference.registry);
+    ``alpha``: the family's level ``testing.alpha``, which the betting test tunes to."""
+    return {name: registry.make(name, opts, seed, alpha) for name, opts in spec.items()}
 
 
 def run_tests(
@@ -76,11 +91,70 @@ def run_tests(
             part["p_floor"] = registry.floored(name, method, part["p_value"].to_numpy())
             parts.append(part)
     out = pd.concat(parts, ignore_index=True)
-    out["rejected"] = False
-    for _, idx in out.groupby(["method", "kind"]).indices.items():
-        out.loc[out.index[idx], "rejected"] = correct(
-            out["p_value"].to_numpy()[idx], alpha, correction
-        )
+    families = (out["method"].astype(str) + "\x00" + out["kind"].astype(str)).to_numpy()
+    out["rejected"] = correct_within(out["p_value"].to_numpy(), families, alpha, correction)
     out["correction"] = correction
     out["alpha"] = alpha
     return out.loc[:, list(RESULT_COLUMNS)]
+
+
+def adaptive_test(
+    hyps: pd.DataFrame,
+    obs: ObservationalSide,
+    nodes: TwinNodes,
+    states: StateBins,
+    *,
+    batch_size: int,
+    alpha: float = 0.05,
+    correction: str = "holm",
+    budget: int | None = None,
+    seed: int = 0,
+    c: float = C_TRUNC,
+    holm_aware: bool | None = None,
+    shards: np.ndarray | None = None,
+    curtail: float = 0.0,
+    combine: str = "union",
+    failed_runs: str = "conservative",
+) -> AdaptiveOutcome:
+    """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
+
+    Twin-hours with prefix reuse: node a_1:s costs one hour per run simulated for it, i.e.
+    per run revealed to a hypothesis whose path uses it and whose B_0 holds that run's X_0
+    (``node_needs``); the fixed scheme simulates every node for the budget.
+    ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
+    Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
+    futile sides per shard as the workflow's parallel shards do (default: whole family);
+    ``combine``: "union" (the only rule; "product" was withdrawn, ``PRODUCT_REMOVED``);
+    ``failed_runs``: "conservative" (default: valid whatever the failed runs would have
+    produced) or "drop".
+    """
+    m = nodes.x0.shape[0]
+    budget = m if budget is None else int(budget)
+    if not 0 <= budget <= m:
+        raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
+    runs = twin_runs_indexed(hyps, nodes, states)
+    if holm_aware is None:
+        holm_aware = correction in HOLM_AWARE
+    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
+                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail,
+                         combine=combine, failed_runs=failed_runs)
+    run_to_stop(st, runs)
+    return outcome(hyps, nodes, states, st, runs, alpha, correction)
+
+
+def outcome(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, st: SequentialState,
+            runs: TwinRuns, alpha: float, correction: str) -> AdaptiveOutcome:
+    """The :class:`AdaptiveOutcome` of a state run to its stops on in-memory ``nodes``."""
+    p_lo, p_up, nhat = st.p_values(runs)
+    per_hyp = st.runs_used()
+    paths = hypothesis_paths(hyps, nodes.index)
+    n_nodes = len(nodes.index)
+    used = node_needs(paths, per_hyp, runs.in_b0, n_nodes,
+                      reachable(hyps, nodes, states)).sum(axis=1)
+    whole = node_needs(paths, per_hyp, runs.in_b0, n_nodes).sum()
+    rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
+    return AdaptiveOutcome(
+        p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
+        int(used.sum()), int(n_nodes * st.budget),
+        int(node_runs(paths, per_hyp, n_nodes).sum()), paper_hours(hyps, st.budget), int(whole),
+    )

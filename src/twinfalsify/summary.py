@@ -20,64 +20,49 @@ from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes,
 from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
-from twinfalsify.runs.plan import (
-    WORKER_STATS,
-    TwinPlan,
-    failing_patients,
-    load_nodes,
-    restart_warning,
-    x0_frame,
-)
-from twinfalsify.schema import FEATURES, T_MAX, ContractError, to_array
+from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes, to_array
+from twinfalsify.stored_runs import WORKER_STATS, failing_patients, restart_warning
 from twinfalsify.tables import markdown_table
+from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, twin_samples
 
 
 @dataclass(frozen=True)
 class StudyTwin:
-    """One twin of one study, loaded as the tests stage sees it."""
+    """One twin of one study: its test inputs (``twin_tests.load_twin_tests``, the tests
+    rule's own path) and what the figures add to them."""
 
     hyps: pd.DataFrame
     samples: HypothesisSamples
+    n_failed: np.ndarray
     results: pd.DataFrame
     d0: pd.DataFrame
     d: pd.DataFrame
     actions: ActionBins
     states: StateBins
-    nodes: bounds.TwinNodes
+    nodes: TwinNodes
     run_status: Mapping[str, int] = None  # twin node-runs per status (runs.parquet)
 
 
-def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
-    """Load the inputs of one twin's tests and rebuild its HypothesisSamples.
+STUDY_TWIN_INPUTS = (*STORED_INPUTS, "d0", "actions", "results")
 
-    paths: keys d0, d, actions, bins, hypotheses, counts, follow, plan, runs, results.
-    The samples are rebuilt with the same library calls as the tests rule, so the
-    statistics recomputed here equal the results table's (checked by the tests).
+
+def load_study_twin(paths: Mapping[str, str | Path]) -> StudyTwin:
+    """One twin's test inputs (:func:`twin_tests.load_twin_tests`: the samples the tests rule
+    tested, failed runs at their places) with D0, the action bins and the results table.
+
+    paths: keys ``STUDY_TWIN_INPUTS``.
     """
-    missing = {"d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan", "runs",
-               "results"} - set(paths)  # fmt: skip
+    missing = set(STUDY_TWIN_INPUTS) - set(paths)
     if missing:
         raise ContractError(f"load_study_twin: missing input path(s) {sorted(missing)}")
-    hyps, obs = bounds.read_observational_side(
-        paths["hypotheses"], paths["counts"], paths["follow"]
-    )
-    d = read_parquet(paths["d"], "D")
-    plan = TwinPlan.from_json(read_json(paths["plan"]))
-    states = StateBins.from_json(read_json(paths["bins"]))
-    runs = read_parquet(paths["runs"], "twin runs")
-    nodes = load_nodes(runs, plan, x0_frame(d, plan.x0_stay_ids))
-    twin, _ = bounds.twin_side(hyps, nodes, states)
+    tt = load_twin_tests(paths)
     return StudyTwin(
-        hyps=hyps,
-        samples=bounds.hypothesis_samples(hyps, obs, twin),
+        hyps=tt.hyps, samples=tt.samples, n_failed=tt.n_failed,
         results=read_parquet(paths["results"], "results"),
-        d0=read_parquet(paths["d0"], "D0"),
-        d=d,
+        d0=read_parquet(paths["d0"], "D0"), d=tt.d,
         actions=ActionBins.from_json(read_json(paths["actions"])),
-        states=states,
-        nodes=nodes,
-        run_status={str(k): int(v) for k, v in runs["status"].value_counts().items()},
-    )
+        states=tt.states, nodes=tt.nodes, run_status=tt.run_status,
+    )  # fmt: skip
 
 
 # -- choosing what to show -------------------------------------------------------------------
@@ -241,8 +226,7 @@ def longitudinal_frame(
     dx = to_array(st.d, FEATURES, T_MAX)
     da = action_codes(st.d, st.actions, T_MAX)
     obs = bounds.observational_side(hyps, dx, da, st.states)
-    twin, n_failed = bounds.twin_side(hyps, st.nodes, st.states)
-    smp = bounds.hypothesis_samples(hyps, obs, twin)
+    smp, n_failed = twin_samples(hyps, obs, st.nodes, st.states)
     w = smp.width
     out = hyps.drop(columns=["hyp_id"]).assign(
         n=smp.n, n_follow=smp.n_follow, nhat=smp.nhat, n_failed=n_failed,

@@ -14,6 +14,7 @@ import pandas as pd
 from scipy import stats
 
 from twinfalsify import bounds, design
+from twinfalsify.bounds import twin_runs_indexed
 from twinfalsify.calibration.config import (
     ADAPTIVE,
     ADAPTIVE_COLUMNS,
@@ -23,7 +24,7 @@ from twinfalsify.calibration.config import (
     WIDTH_COLUMNS,
     CalibrationConfig,
 )
-from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.falsify import make_methods, outcome, run_tests
 from twinfalsify.inference.betting import default_tune_alpha
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
@@ -32,14 +33,13 @@ from twinfalsify.inference.sequential import (
     UNDECIDED,
     AdaptiveOutcome,
     SequentialState,
-    outcome,
     run_to_stop,
-    twin_runs_indexed,
 )
 from twinfalsify.runs import plan as tp
 from twinfalsify.schema import FEATURES, OUTCOMES, STAY_ID, ContractError, to_array
 from twinfalsify.sources.synthetic import SyntheticWorld
 from twinfalsify.split import split_stays
+from twinfalsify.twin_tests import twin_samples
 from twinfalsify.twins.builtin import OracleTwin
 
 
@@ -132,8 +132,8 @@ def welch_pvalues(samples: HypothesisSamples) -> np.ndarray:
 def _methods(cfg: CalibrationConfig, n_hyps: int, seed: int):
     spec = {k: dict(v or {}) for k, v in cfg.methods.items()}
     if "betting" in spec:
-        spec["betting"].setdefault("tune_alpha", default_tune_alpha(n_hyps))
-    return make_methods(spec, seed)
+        spec["betting"].setdefault("tune_alpha", default_tune_alpha(n_hyps, cfg.alpha))
+    return make_methods(spec, seed, alpha=cfg.alpha)
 
 
 def fixed_results(cfg: CalibrationConfig, rep: Replicate, bias: float) -> tuple[
@@ -141,8 +141,7 @@ def fixed_results(cfg: CalibrationConfig, rep: Replicate, bias: float) -> tuple[
 ]:
     """Fixed-scheme results of every method (``falsify.run_tests`` rows) for the biased twin."""
     nodes = shifted_nodes(rep, bias, tuple(cfg.bias_features))
-    twin_vals, n_failed = bounds.twin_side(rep.hyps, nodes, rep.states)
-    samples = bounds.hypothesis_samples(rep.hyps, rep.obs, twin_vals)
+    samples, n_failed = twin_samples(rep.hyps, rep.obs, nodes, rep.states)
     res = run_tests(
         rep.hyps, samples, n_failed, _methods(cfg, len(rep.hyps), rep.seed),
         alpha=cfg.alpha, correction=cfg.correction,

@@ -96,9 +96,9 @@ best bet by at most a factor sqrt(r); a best bet outside the grid (variance belo
 1/(4 r^(2(J-1))), or a gap needing a bet below lambda_min) costs more, without bound.
 Measured in docs/reference/benchmarks.md.
 
-Tuning level delta0: by default alpha0 / 2 with alpha0 = 0.05 / (2 H) (the
-Bonferroni level over the 2H one-sided hypotheses, where Holm's decisions are
-made); any delta0 gives valid bounds, it only moves where they are tightest.
+Tuning level delta0: by default alpha0 / 2 with alpha0 = alpha / (2 H), alpha the family's
+level ``testing.alpha`` (the Bonferroni level over the 2H one-sided hypotheses, where Holm's
+decisions are made); any delta0 gives valid bounds, it only moves where they are tightest.
 
 Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; data order as
 above. The sides need not be independent (the union rule is a union bound over two
@@ -114,155 +114,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide re-exported
+    C_TRUNC,
+    OrderedSide,
+    capital_bound,
+    chunk_ranges,
+    crossing,
+    flat_layout,
+    log_capital,
+    plugin_bets,
+    running_moments,
+    segment_cumsum,
+)
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
-C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
 BETS = ("plugin", "mixture")  # WSR predictable plug-in (default) | order-free grid mixture
 ORDER_KINDS = ("data", "seed")  # plug-in order: fixed by the data (default) | seeded
 MIX_GRID = 6  # J constant bets in the mixture (power against J: docs/explanation/statistics.md)
 MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
-
-
-@dataclass
-class OrderedSide:
-    """One side's rescaled sample of many hypotheses, ordered, with its bets (flat arrays).
-
-    ``copies`` K > 1: the side holds K independently ordered copies of G groups, copy-major
-    (group k G + g is copy k of group g); :func:`log_capital` then returns, per group, the
-    log of the *average over the copies* of the terminal capital (module doc, "Order").
-    """
-
-    x: np.ndarray  # (N,) values in [0, 1], group after group
-    lam: np.ndarray  # (N,) predictable bets lambda_i (before the m-dependent truncation)
-    offsets: np.ndarray  # (K G + 1,)
-    copies: int = 1
-
-    @property
-    def sizes(self) -> np.ndarray:
-        return np.diff(self.offsets)
-
-    @property
-    def n_groups(self) -> int:
-        """G: groups per copy."""
-        return (len(self.offsets) - 1) // self.copies
-
-    def take(self, groups: np.ndarray) -> OrderedSide:
-        """The listed groups (sorted indices, every copy), compacted."""
-        g = self.n_groups
-        rows = (np.arange(self.copies)[:, None] * g + np.asarray(groups)[None, :]).ravel()
-        keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), rows), self.sizes)
-        sizes = self.sizes[rows]
-        return OrderedSide(
-            self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-            self.copies,
-        )
-
-
-def _segment_cumsum(v: np.ndarray, offsets: np.ndarray, gid: np.ndarray) -> np.ndarray:
-    """Cumulative sums restarting at every group start (gid: group of every element)."""
-    cs = np.cumsum(v)
-    base = np.concatenate([[0.0], cs])[offsets[:-1]]
-    return cs - base[gid]
-
-
-def _layout(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(group id, 1-based position in its group) of every element of a flat layout."""
-    sizes = np.diff(offsets)
-    gid = np.repeat(np.arange(len(sizes)), sizes)
-    t = np.arange(offsets[-1]) - offsets[:-1][gid] + 1
-    return gid, t
-
-
-def running_moments(
-    x: np.ndarray, offsets: np.ndarray, layout: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Predictable plug-in moments per group: (mu_{i-1}, sigma2_{i-1}) before each value, with
-    mu_t = (1/2 + sum_{j<=t} x_j) / (t + 1), sigma2_t = (1/4 + sum_{j<=t} (x_j - mu_j)^2) /
-    (t + 1) (WSR 2024, eq. 26-27), so mu_0 = 1/2 and sigma2_0 = 1/4 at every group start."""
-    gid, t = _layout(offsets) if layout is None else layout
-    mu = (0.5 + _segment_cumsum(x, offsets, gid)) / (t + 1)
-    sig2 = (0.25 + _segment_cumsum((x - mu) ** 2, offsets, gid)) / (t + 1)
-    starts = offsets[:-1][np.diff(offsets) > 0]
-    mu_prev, sig2_prev = np.empty_like(mu), np.empty_like(sig2)
-    mu_prev[1:], sig2_prev[1:] = mu[:-1], sig2[:-1]
-    mu_prev[starts], sig2_prev[starts] = 0.5, 0.25
-    return mu_prev, sig2_prev
-
-
-def plugin_bets(
-    x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
-    layout: tuple[np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray:
-    """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
-
-    ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only. Not
-    truncated here: ``c`` truncation is m-dependent (c/m, c/(1-m), in :func:`log_capital`);
-    ``c`` is accepted for backward compatibility and ignored.
-    """
-    sizes = np.diff(offsets)
-    gid, t = _layout(offsets) if layout is None else layout
-    _, prev = running_moments(x, offsets, (gid, t))
-    with np.errstate(divide="ignore"):
-        k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
-    return np.sqrt(k[gid] / prev)
-
-
-_CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)
-
-
-def _chunks(sizes: np.ndarray, per: int = _CHUNK) -> list[tuple[int, int]]:
-    """Consecutive hypothesis ranges [h0, h1) holding about ``per`` elements each."""
-    cum = np.concatenate([[0], np.cumsum(sizes)])
-    out, h0, h = [], 0, len(sizes)
-    while h0 < h:
-        h1 = int(np.searchsorted(cum, cum[h0] + per, side="right")) - 1
-        h1 = min(max(h1, h0 + 1), h)
-        out.append((h0, h1))
-        h0 = h1
-    return out
-
-
-def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
-                c: float = C_TRUNC) -> np.ndarray:
-    """log max_{0<=t<=n} K^{sign}_t(m) per group (sign +1: K+, -1: K-); m has shape (G,).
-
-    ``running_max=False``: log K_n (terminal). A side with K copies (orders, or the bets of
-    the grid mixture) gives log((1/K) sum_k K^(k)_n(m)), always terminal whatever
-    ``running_max`` says (the running maximum of an average over different orders is not
-    covered by Ville's inequality; the mixture is defined by its terminal value), so a
-    mixture side can be paired with a running-maximum side. Evaluated chunk by chunk of
-    groups (cache-sized working arrays).
-    """
-    if side.copies > 1:
-        one = OrderedSide(side.x, side.lam, side.offsets)
-        per = log_capital(one, np.tile(np.asarray(m, float), side.copies), sign, False, c)
-        per = per.reshape(side.copies, -1)
-        top = per.max(axis=0)
-        return top + np.log(np.mean(np.exp(per - top), axis=0))
-    sizes = side.sizes
-    m = np.asarray(m, float)
-    with np.errstate(divide="ignore"):
-        cap = c / m if sign > 0 else c / (1.0 - m)
-    out = np.zeros(len(sizes))
-    for h0, h1 in _chunks(sizes):
-        o = side.offsets[h0: h1 + 1]
-        sl = slice(o[0], o[-1])
-        sz = sizes[h0:h1]
-        gid = np.repeat(np.arange(h1 - h0), sz)
-        lam = np.minimum(side.lam[sl], cap[h0:h1][gid])
-        term = np.log1p(sign * lam * (side.x[sl] - m[h0:h1][gid]))
-        cs = np.cumsum(term)
-        starts = o[:-1] - o[0]
-        base = np.concatenate([[0.0], cs])[starts]
-        nz = sz > 0
-        if not nz.any():
-            continue
-        if running_max:
-            mx = np.maximum.reduceat(cs, starts[nz])
-            out[h0:h1][nz] = np.maximum(0.0, mx - base[nz])  # t = 0: K_0 = 1
-        else:
-            out[h0:h1][nz] = cs[o[1:][nz] - o[0] - 1] - base[nz]
-    return out
 
 
 _M64 = np.uint64(0xFFFFFFFFFFFFFFFF)
@@ -308,13 +177,7 @@ def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int
 
 def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.ndarray]:
     """K copies of the samples, copy-major, keeping every hypothesis' key; and copy index."""
-    def tile_r(r: Ragged) -> Ragged:
-        sizes = np.tile(r.sizes, k)
-        return Ragged(np.tile(r.values, k),
-                      np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
-
-    t = samples.per_hypothesis(lambda a: np.tile(a, k), tile_r)
-    return t, np.repeat(np.arange(k), len(samples))
+    return samples.tile(k), np.repeat(np.arange(k), len(samples))
 
 
 def _checked(samples: HypothesisSamples, delta0: np.ndarray | float
@@ -362,9 +225,9 @@ def ordered_sides(
     def obs() -> tuple[OrderedSide, OrderedSide]:
         x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
         l_lo, l_up = np.empty(offs[-1]), np.empty(offs[-1])
-        for h0, h1 in _chunks(n):
+        for h0, h1 in chunk_ranges(n):
             o = offs[h0: h1 + 1] - offs[h0]
-            lay = _layout(o)  # shared by Y_lo and Y_up
+            lay = flat_layout(o)  # shared by Y_lo and Y_up
             gid, t = lay
             fsl = slice(follow.offsets[h0], follow.offsets[h1])
             fv = follow.values[fsl]
@@ -393,7 +256,7 @@ def ordered_sides(
     def twin_side() -> OrderedSide:
         sizes = twin.sizes
         xt, lt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
-        for h0, h1 in _chunks(sizes):
+        for h0, h1 in chunk_ranges(sizes):
             o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
             sl = slice(twin.offsets[h0], twin.offsets[h1])
             g = np.repeat(np.arange(h1 - h0), sizes[h0:h1])
@@ -466,8 +329,8 @@ def worst_twin_sides(
     n_ok = np.bincount(gid[ok], minlength=len(sizes))
     offs_ext = np.concatenate([[0], np.cumsum(n_ok + 1)]).astype(np.int64)
     x_ext = np.full(offs_ext[-1], 0.5)
-    lay = _layout(offs_ext)
-    slot = offs_ext[:-1][gid] + (_segment_cumsum(ok.astype(float), cand.offsets, gid)
+    lay = flat_layout(offs_ext)
+    slot = offs_ext[:-1][gid] + (segment_cumsum(ok.astype(float), cand.offsets, gid)
                                  - ok).astype(np.int64)  # successful runs before each
     x_ext[slot[ok]] = x[ok]
     _, prev = running_moments(x_ext, offs_ext, lay)
@@ -510,7 +373,7 @@ def mixture_sides(
     n = samples.n.astype(np.int64)
     nf = samples.n_follow
     offs = np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
-    gid, t = _layout(offs)
+    gid, t = flat_layout(offs)
     is_f = t <= nf[gid]
     fg = np.repeat(np.arange(h), nf)
     xf = np.zeros(len(gid))
@@ -524,73 +387,6 @@ def mixture_sides(
             _grid_side(x_tw, tw.offsets, d0, j, r))
 
 
-def _crossing(
-    dec: OrderedSide, inc: OrderedSide, m0: np.ndarray, running_max: bool, c: float,
-    tol: float, max_iter: int,
-) -> np.ndarray:
-    """log K* lower bound per group: max_m min(g_dec(m), g_inc(m)), g = log max_t K.
-
-    g_dec = log max_t K+ of the side hypothesised larger (non-increasing in m),
-    g_inc = log max_t K- of the side hypothesised smaller (non-decreasing). Known:
-    g_inc(0) = 0 and g_dec(1) = 0 (every factor <= 1 there, K_0 = 1). Safeguarded
-    Illinois false position on h = g_dec - g_inc over the bracket [a, b] with
-    h(a) >= 0 >= h(b); K* lies between exp(max(g_dec(b), g_inc(a))) (attained,
-    returned) and exp(min(g_dec(a), g_inc(b))). Stops when these agree within tol,
-    or when the upper one is below log 2 (then p = 1 whatever K* is).
-    """
-    g = len(m0)
-    out = np.zeros(g)
-    a, b = np.zeros(g), np.ones(g)
-    da, ia = np.full(g, np.inf), np.zeros(g)  # g_dec(a), g_inc(a) at a = 0
-    db, ib = np.zeros(g), np.full(g, np.inf)  # g_dec(b), g_inc(b) at b = 1
-    act = np.arange(g)
-    d_side, i_side = dec, inc
-    last = np.zeros(g, dtype=np.int8)  # which end moved last (+1 a, -1 b), for Illinois
-    ha_w, hb_w = np.full(g, np.nan), np.full(g, np.nan)  # Illinois-weighted h at the ends
-    m = np.clip(np.asarray(m0, float), 1e-9, 1 - 1e-9)
-    for it in range(max_iter):
-        gd = log_capital(d_side, m[act], +1, running_max, c)
-        gi = log_capital(i_side, m[act], -1, running_max, c)
-        h = gd - gi
-        right = h >= 0  # crossing is to the right of m: m becomes a
-        ai = act[right]
-        bi = act[~right]
-        a[ai], da[ai], ia[ai] = m[ai], gd[right], gi[right]
-        b[bi], db[bi], ib[bi] = m[bi], gd[~right], gi[~right]
-        # Illinois: halve the weight of an end that stays put twice in a row
-        new_ha = np.where(right, h, ha_w[act])
-        new_hb = np.where(~right, h, hb_w[act])
-        stay_b = right & (last[act] == 1)
-        stay_a = ~right & (last[act] == -1)
-        new_hb = np.where(stay_b, new_hb / 2, new_hb)
-        new_ha = np.where(stay_a, new_ha / 2, new_ha)
-        ha_w[act], hb_w[act] = new_ha, new_hb
-        last[act] = np.where(right, 1, -1)
-        lower = np.maximum(db[act], ia[act])
-        upper = np.minimum(da[act], ib[act])
-        done = (upper - lower <= tol) | (upper <= np.log(2.0)) | (b[act] - a[act] <= 1e-14)
-        out[act] = lower
-        keep = ~done
-        if not keep.any():
-            break
-        if keep.sum() < 0.75 * act.size:
-            # compact; otherwise finished groups ride along (their bracket only tightens)
-            kept = np.flatnonzero(keep)
-            d_side, i_side, act = d_side.take(kept), i_side.take(kept), act[kept]
-        # next point: false position where both end values are known, else bisection
-        aa, bb = a[act], b[act]
-        hw_a, hw_b = ha_w[act], hb_w[act]
-        fp = np.isfinite(hw_a) & np.isfinite(hw_b) & (hw_a - hw_b > 0) & (it % 4 != 3)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mf = aa + (bb - aa) * hw_a / (hw_a - hw_b)
-        mid = 0.5 * (aa + bb)
-        nxt = np.where(fp, mf, mid)
-        # stay strictly inside the bracket
-        eps = 1e-3 * (bb - aa)
-        m[act] = np.clip(nxt, aa + eps, bb - eps)
-    return out
-
-
 def _ragged_subset(r: Ragged, keep: np.ndarray) -> Ragged:
     """The groups where ``keep`` is True, vectorised (no loop over groups)."""
     sizes = r.sizes[keep]
@@ -602,9 +398,10 @@ def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
     return samples.per_hypothesis(lambda a: a[keep], lambda r: _ragged_subset(r, keep))
 
 
-def default_tune_alpha(h: int) -> float:
-    """0.05 / (2H): the Bonferroni level over the 2H one-sided hypotheses of a run."""
-    return 0.05 / (2 * max(int(h), 1))
+def default_tune_alpha(h: int, alpha: float = 0.05) -> float:
+    """alpha / (2H): the Bonferroni level over the 2H one-sided hypotheses of a run at the
+    family's level alpha (``testing.alpha``)."""
+    return float(alpha) / (2 * max(int(h), 1))
 
 
 ORDERS = 1  # default K for plugin bets (K > 1 averages K orders' terminal capitals; docs)
@@ -702,10 +499,12 @@ def betting_test(
     c: float = C_TRUNC,
     tol: float = 1e-3,
     max_iter: int = 100,
+    alpha: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
 
-    ``tune_alpha``: the level the bets are tuned for (default 0.05 / (2H)); ``bets``:
+    ``tune_alpha``: the level the bets are tuned for (default alpha / (2H), ``alpha`` the
+    family's level ``testing.alpha``); ``bets``:
     "plugin" (default: WSR's predictable plug-in bets; ``order`` "data" (default) puts each
     sample in its data order, no seed enters; "seed": a ``seed``-ed random order; ``orders``
     K > 1 averages the terminal capitals of K orders; K = 1 (default): one order, running
@@ -720,7 +519,7 @@ def betting_test(
     ok = (samples.n > 0) & (samples.nhat > 0)
     if not ok.any():
         return p_lo, p_up
-    alpha0 = default_tune_alpha(h) if tune_alpha is None else float(tune_alpha)
+    alpha0 = default_tune_alpha(h, alpha) if tune_alpha is None else float(tune_alpha)
     if not 0 < alpha0 < 1:
         raise ValueError(f"betting: tune_alpha must be in (0, 1), got {alpha0}")
     sub = samples if ok.all() else _subset(samples, ok)
@@ -740,27 +539,12 @@ def betting_test(
         q_up = (part.q_up_hat - part.y_lo) / r
         q_tw = (part.q_twin_hat - part.y_lo) / r
         with ThreadPoolExecutor(2) as pool:  # the two crossings are independent
-            f_lo = pool.submit(_crossing, lo, tw_lo, 0.5 * (q_lo + q_tw), rmax, c, tol, max_iter)
-            f_up = pool.submit(_crossing, tw_up, up, 0.5 * (q_up + q_tw), rmax, c, tol, max_iter)
+            f_lo = pool.submit(crossing, lo, tw_lo, 0.5 * (q_lo + q_tw), rmax, c, tol, max_iter)
+            f_up = pool.submit(crossing, tw_up, up, 0.5 * (q_up + q_tw), rmax, c, tol, max_iter)
             k_lo[idx], k_up[idx] = f_lo.result(), f_up.result()
     p_lo[ok] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
     p_up[ok] = np.minimum(1.0, 2.0 * np.exp(-k_up))
     return p_lo, p_up
-
-
-def _bound(side: OrderedSide, log_level: np.ndarray, sign: int, running_max: bool, c: float,
-           n_iter: int = 42) -> np.ndarray:
-    """sup{m : log max K+(m) >= level} (sign +1) or inf{m : log max K-(m) >= level} (sign -1)."""
-    g = side.n_groups
-    a, b = np.zeros(g), np.ones(g)  # sign +1: K+ >= level holds at a, fails at b
-    for _ in range(n_iter):
-        mid = 0.5 * (a + b)
-        hit = log_capital(side, mid, sign, running_max, c) >= log_level
-        if sign > 0:
-            a, b = np.where(hit, mid, a), np.where(hit, b, mid)
-        else:
-            a, b = np.where(hit, a, mid), np.where(hit, mid, b)
-    return a if sign > 0 else b
 
 
 def betting_bounds(
@@ -792,8 +576,8 @@ def betting_bounds(
     lev = np.log(2.0 / alpha)
     r, y0 = samples.width, samples.y_lo
     return {
-        "lower_lo": y0 + r * _bound(lo, lev, +1, rmax, c),
-        "upper_up": y0 + r * _bound(up, lev, -1, rmax, c),
-        "lower_twin": y0 + r * _bound(tw, lev, +1, rmax, c),
-        "upper_twin": y0 + r * _bound(tw, lev, -1, rmax, c),
+        "lower_lo": y0 + r * capital_bound(lo, lev, +1, rmax, c),
+        "upper_up": y0 + r * capital_bound(up, lev, -1, rmax, c),
+        "lower_twin": y0 + r * capital_bound(tw, lev, +1, rmax, c),
+        "upper_twin": y0 + r * capital_bound(tw, lev, -1, rmax, c),
     }

@@ -183,7 +183,7 @@ def conservative_pvalues(
     if factor is not None:
         p_lo, p_up, _, _ = hoeffding_worst_k(samples_drop, f, factor)
         return p_lo, p_up
-    method = _family_tuned(method, len(samples))
+    method = family_tuned(method, len(samples))
     p0_lo, p0_up = base if base is not None else method(samples_drop)
     p_lo, p_up = np.asarray(p0_lo, float).copy(), np.asarray(p0_up, float).copy()
     idx = np.flatnonzero(f > 0)
@@ -209,13 +209,15 @@ def conservative_pvalues(
     return p_lo, p_up
 
 
-def _family_tuned(method: Method, h: int) -> Method:
-    """Betting tunes its bets by default at 0.05 / (2H) of the samples it is given; the
-    completions below are evaluated on a subset, so fix the tuning of the whole family (one
-    tuning for every k; the orders are per hypothesis already, ``betting._order_keys``)."""
+def family_tuned(method: Method, h: int) -> Method:
+    """The method with the tuning of a family of h parameter sets fixed. Betting tunes its
+    bets by default at alpha / (2H) of the samples it is given; completions (below) and
+    sensitivity widenings are evaluated on subsets or tilings, so the tuning of the whole
+    family is bound (the orders are per hypothesis already, ``betting._order_keys``)."""
     if isinstance(method, partial) and method.func is betting_test and \
             method.keywords.get("tune_alpha") is None:
-        return partial(method, tune_alpha=default_tune_alpha(h))
+        return partial(method, tune_alpha=default_tune_alpha(h, method.keywords.get("alpha",
+                                                                                     0.05)))
     if method is betting_test:
         return partial(betting_test, tune_alpha=default_tune_alpha(h))
     return method

@@ -54,3 +54,24 @@ def correct(p_values: np.ndarray, alpha: float = 0.05, method: str = "holm") -> 
     reject = np.empty(m, dtype=bool)
     reject[order] = reject_sorted
     return reject
+
+
+def correct_within(p_values: np.ndarray, families: np.ndarray, alpha: float = 0.05,
+                   method: str = "holm") -> np.ndarray:
+    """Boolean rejections after the named correction within each family (one label per
+    p-value): the one place a study's families are corrected (tests, sensitivity, sequential)."""
+    p = np.asarray(p_values, float)
+    fam = np.asarray(families)
+    if fam.shape != p.shape:
+        raise ValueError(f"families has shape {fam.shape}, p-values {p.shape}")
+    out = np.zeros(p.shape, dtype=bool)
+    for idx in _groups(fam):
+        out[idx] = correct(p[idx], alpha, method)
+    return out
+
+
+def _groups(labels: np.ndarray) -> list[np.ndarray]:
+    """Indices of each distinct label, in order of first appearance."""
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    return [np.flatnonzero(inverse == g) for g in order]

@@ -32,9 +32,18 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
 }
 
 
-def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
+# methods whose p-value of a hypothesis depends on its own samples alone once the tuning is
+# fixed (the bootstrap draws its resamples for the whole family): ``inference.sensitivity``
+PER_HYPOTHESIS = ("hoeffding", "bernstein", "betting")
+# methods whose tuning reads the family's level (``testing.alpha``)
+LEVELLED = ("betting",)
+
+
+def make(name: str, opts: dict[str, Any] | None, seed: int, alpha: float = 0.05) -> Method:
     """The method ``name`` with its options bound; unknown names/options, and values of the
-    wrong type or out of range (the method module's ``check_options``), are config errors."""
+    wrong type or out of range (the method module's ``check_options``), are config errors.
+    ``alpha``: the family's level (``testing.alpha``), bound for the methods that tune to it
+    (``LEVELLED``)."""
     if name not in METHODS:
         raise ContractError(
             f"testing.methods: unknown method {name!r}; choose from {', '.join(METHODS)}"
@@ -60,6 +69,8 @@ def make(name: str, opts: dict[str, Any] | None, seed: int) -> Method:
     fn = getattr(mod, func)
     if seeded:
         opts["seed"] = int(seed)
+    if name in LEVELLED:
+        opts["alpha"] = float(alpha)
     return partial(fn, **opts)
 
 

@@ -229,3 +229,36 @@ class HypothesisSamples:
     def take(self, index: np.ndarray) -> HypothesisSamples:
         index = np.asarray(index, dtype=np.int64)
         return self.per_hypothesis(lambda a: a[index], lambda r: r.take(index))
+
+    def tile(self, k: int) -> HypothesisSamples:
+        """K copies of every hypothesis, copy-major, each keeping its hypothesis' key (so an
+        order-dependent method orders every copy as the original)."""
+        def tile_r(r: Ragged) -> Ragged:
+            sizes = np.tile(r.sizes, k)
+            return Ragged(np.tile(r.values, k),
+                          np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+        return self.per_hypothesis(lambda a: np.tile(a, k), tile_r)
+
+
+@dataclass(frozen=True)
+class ObservationalSide:
+    """The observational side of every hypothesis (``bounds.observational_side``)."""
+
+    n: np.ndarray  # (H,) entering trajectories
+    follow: Ragged  # raw outcomes of followers
+    # aligned with ``follow``: each follower's position among the hypothesis' n entering
+    # trajectories in the content-keyed order (``inference.order``: the betting test's data
+    # order, independent of the stay numbering); None: unknown
+    follow_pos: Ragged | None = None
+
+
+@dataclass(frozen=True)
+class TwinRuns:
+    """Entering twin runs per hypothesis in X_0 order: raw outcome and run position
+    (``bounds.twin_runs_indexed``; the sequential mode's input)."""
+
+    values: Ragged  # raw outcomes, X_0 order within each hypothesis
+    run: np.ndarray  # (total,) position of each value's run in the X_0 order
+    in_b0: np.ndarray  # (H, m) real X_0 in B_0 (runs that can ever enter)
+    failed: np.ndarray  # (H, m) run failed on the path (and X_0 in B_0)

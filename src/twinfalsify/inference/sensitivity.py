@@ -1,31 +1,44 @@
-"""Sensitivity of the rejections to the outcome range [y_lo, y_up] (the paper's appendix).
+r"""Sensitivity of the rejections to the outcome range [y_lo, y_up] (the paper's appendix).
 
-For every Delta in a grid, rerun each test with
+For every :math:`\Delta` in a grid, rerun each test with
 
-    y_lo -> y_lo (1 - Delta/2),   y_up -> y_up (1 + Delta/2)
+.. math::
 
-(Delta = 0 reproduces the main analysis; larger Delta widens the bounds for
-positive outcomes, so rejections should fall), correct all 2H one-sided p-values
-of the run together (Holm by default, as in the main analysis) and count
-rejections per group (e.g. outcome). Note: for a negative y_lo the map moves y_lo
-up (towards 0), i.e. it is a relative, not an absolute, widening; every outcome
-in this study is positive (MIMIC units), and the sweep refuses ranges that become
-empty. Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
+    y_{lo} \to y_{lo} (1 - \Delta/2), \qquad y_{up} \to y_{up} (1 + \Delta/2)
+
+and correct each family as the main analysis does (the same methods, failed-run handling,
+level and correction, within each (method, family), both sides of every parameter set),
+then count rejections per group (e.g. outcome). :math:`\Delta = 0` reproduces the main
+analysis' decisions exactly. Widening moves both the bounds and the clipping of every
+sample, so the counts need not fall monotonically with :math:`\Delta`: a twin output
+clipped at y_lo moves down with y_lo, and a widened range can bring a twin mean that sat
+inside the bounds outside them.
+
+For a negative y_lo the map moves y_lo up (towards 0): a relative, not an absolute,
+widening; the sweep refuses ranges that become empty.
+
+Speed: a method whose p-value of a hypothesis depends on that hypothesis' samples alone
+(``per_hypothesis``: Hoeffding, Bernstein, betting once its tuning level is fixed) is
+called once on every widening at once (the samples tiled, each copy keeping its
+hypothesis' key and so its data order); the others (the bootstrap, whose resamples are
+drawn for the whole family) are called once per widening on the whole family.
+
+Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
-from twinfalsify.inference.multiple_testing import correct
+from twinfalsify.inference.failures import failure_pvalues, family_tuned
+from twinfalsify.inference.multiple_testing import correct_within
 from twinfalsify.inference.samples import HypothesisSamples
 
 Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
-COLUMNS = ["delta", "method", "group", "n_hypotheses", "n_rejected"]
+COLUMNS = ["delta", "method", "family", "group", "n_hypotheses", "n_rejected"]
 
 
 def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
@@ -38,6 +51,38 @@ def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
     return samples.with_bounds(y_lo, y_up)
 
 
+def sweep_pvalues(
+    method: Method, samples: HypothesisSamples, n_failed: np.ndarray, deltas: Sequence[float],
+    failed_runs: str = "conservative", per_hypothesis: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening.
+
+    Delta = 0 is the main analysis' own call (bit for bit); with ``per_hypothesis`` the
+    other widenings are evaluated in one call on tiled samples, whose p-values agree with
+    one call per widening to the search's accuracy (``tol`` of the betting test: p is never
+    understated either way).
+    """
+    h, k = len(samples), len(deltas)
+    f = np.asarray(n_failed, np.int64)
+    method = family_tuned(method, h)  # the tuning of the whole family, whatever is tiled
+    p_lo, p_up = np.ones((k, h)), np.ones((k, h))
+    zero = [j for j, d in enumerate(deltas) if float(d) == 0.0]
+    rest = [j for j in range(k) if j not in zero]
+    if zero:
+        p_lo[zero], p_up[zero] = failure_pvalues(method, samples, f, failed_runs)
+    if per_hypothesis and len(rest) > 1:
+        wide = [widened(samples, float(deltas[j])) for j in rest]
+        tiled = samples.tile(len(rest)).with_bounds(np.concatenate([w.y_lo for w in wide]),
+                                                    np.concatenate([w.y_up for w in wide]))
+        lo, up = failure_pvalues(method, tiled, np.tile(f, len(rest)), failed_runs)
+        p_lo[rest], p_up[rest] = np.reshape(lo, (len(rest), h)), np.reshape(up, (len(rest), h))
+    else:
+        for j in rest:
+            p_lo[j], p_up[j] = failure_pvalues(method, widened(samples, float(deltas[j])), f,
+                                               failed_runs)
+    return p_lo, p_up
+
+
 def sensitivity_sweep(
     samples: HypothesisSamples,
     deltas: Sequence[float],
@@ -45,61 +90,44 @@ def sensitivity_sweep(
     alpha: float = 0.05,
     correction: str = "holm",
     group: np.ndarray | None = None,
+    *,
+    n_failed: np.ndarray | None = None,
+    failed_runs: str = "conservative",
+    family: np.ndarray | None = None,
+    per_hypothesis: Collection[str] = (),
+    progress: Callable[[str], None] | None = None,
 ) -> pd.DataFrame:
-    """Long table (delta, method, group, n_hypotheses, n_rejected); both sides counted.
+    """Long table (delta, method, family, group, n_hypotheses, n_rejected), both sides counted.
 
-    n_hypotheses counts one-sided hypotheses (2 per parameter set, as the paper's
-    1,442 = 2 x 721); the correction runs over all of them at each (delta, method).
-    ``group`` labels each parameter set (default: one group "all").
+    ``family`` labels each parameter set's family (the kind: causal or Manski; default one
+    family "all"); the correction runs over both sides of every parameter set of a family
+    at each (delta, method), as ``falsify.run_tests`` does. ``group`` labels each
+    parameter set for counting (default "all"). ``n_failed``/``failed_runs``: the failed
+    twin runs and their handling, as in the main analysis. ``per_hypothesis``: names of the
+    methods that may be called on every widening at once (module doc).
     """
     h = len(samples)
     labels = np.full(h, "all", dtype=object) if group is None else np.asarray(group, dtype=object)
-    if labels.shape != (h,):
-        raise ValueError(f"sensitivity: group has shape {labels.shape}, expected ({h},)")
+    fam = np.full(h, "all", dtype=object) if family is None else np.asarray(family, dtype=object)
+    for name, arr in (("group", labels), ("family", fam)):
+        if arr.shape != (h,):
+            raise ValueError(f"sensitivity: {name} has shape {arr.shape}, expected ({h},)")
     if not methods:
         raise ValueError("sensitivity: no methods given")
-    uniq = pd.unique(labels)
+    f = np.zeros(h, np.int64) if n_failed is None else np.asarray(n_failed, np.int64)
+    cells = pd.DataFrame({"family": fam, "group": labels})
+    keys = list(cells.drop_duplicates().itertuples(index=False, name=None))
+    sizes = cells.value_counts(sort=False)
     rows = []
-    for delta in deltas:
-        s = widened(samples, float(delta))
-        for name, fn in methods.items():
-            p_lo, p_up = fn(s)
-            rej = correct(np.concatenate([p_lo, p_up]), alpha=alpha, method=correction)
+    for name, fn in methods.items():
+        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, name in per_hypothesis)
+        for j, delta in enumerate(deltas):
+            rej = correct_within(np.concatenate([p_lo[j], p_up[j]]), np.concatenate([fam, fam]),
+                                 alpha, correction)
             per = rej[:h].astype(int) + rej[h:].astype(int)
-            counts = pd.Series(per).groupby(labels).sum()
-            sizes = pd.Series(np.ones(h, int)).groupby(labels).sum()
-            for g in uniq:
-                rows.append((float(delta), name, g, int(2 * sizes[g]), int(counts[g])))
+            counts = pd.Series(per).groupby([fam, labels]).sum()
+            rows += [(float(delta), name, fa, g, int(2 * sizes[(fa, g)]), int(counts[(fa, g)]))
+                     for fa, g in keys]
+        if progress is not None:
+            progress(f"{name}: {len(deltas)} widenings done")
     return pd.DataFrame(rows, columns=COLUMNS)
-
-
-def plot_sensitivity(table: pd.DataFrame, path: str | Path) -> Path:
-    """Line figure: rejections per group against Delta, one panel per method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    missing = set(COLUMNS) - set(table.columns)
-    if missing:
-        raise ValueError(f"plot_sensitivity: table lacks columns {sorted(missing)}")
-    methods = list(pd.unique(table["method"]))
-    fig, axes = plt.subplots(1, len(methods), figsize=(4.5 * len(methods), 3.6), squeeze=False,
-                             sharey=True)
-    for ax, m in zip(axes[0], methods, strict=True):
-        sub = table[table["method"] == m]
-        for g, d in sub.groupby("group", sort=True):
-            d = d.sort_values("delta")
-            ax.plot(d["delta"], d["n_rejected"], marker="o", ms=3, label=str(g))
-        ax.set_title(m)
-        ax.set_xlabel(r"$\Delta$")
-    axes[0][0].set_ylabel("rejections")
-    axes[0][-1].legend(fontsize=7, ncol=1, bbox_to_anchor=(1.02, 1), loc="upper left")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp" + path.suffix)
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(path)  # atomic
-    return path

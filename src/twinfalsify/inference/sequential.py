@@ -24,7 +24,7 @@ plug-in bets in the data order of the fixed test, no seed: ``betting`` module do
 running maximum; Ville).
 Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
 max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
-(``betting._crossing``), evaluated with the twin data revealed
+(``betting.crossing``), evaluated with the twin data revealed
 at the stopping time tau. Mirror for H_up.
 
 Decisions after each batch (one-sided hypotheses; the family is the hypothesis kind, as in
@@ -73,22 +73,20 @@ import numpy as np
 import pandas as pd
 from scipy.special import erfc
 
-from twinfalsify.bounds import ObservationalSide, TwinNodes
-from twinfalsify.design import WHOLE_SPACE, StateBins, padded
-from twinfalsify.inference.betting import (
+from twinfalsify.design import StateBins
+from twinfalsify.inference.betting import ordered_sides
+from twinfalsify.inference.capital import (
     C_TRUNC,
     OrderedSide,
-    _bound,
-    _crossing,
-    _layout,
-    _segment_cumsum,
+    capital_bound,
+    crossing,
+    flat_layout,
     log_capital,
-    ordered_sides,
     running_moments,
+    segment_cumsum,
 )
-from twinfalsify.inference.multiple_testing import correct
-from twinfalsify.inference.samples import HypothesisSamples, Ragged
-from twinfalsify.schema import FEATURES, T_MAX
+from twinfalsify.inference.multiple_testing import correct_within
+from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide, Ragged, TwinRuns
 
 UNDECIDED, REJECTED, FUTILE, CURTAILED = 0, 1, 2, 3
 FAILED_RUNS = ("conservative", "drop")  # failed twin runs: worst case or left out (doc)
@@ -112,7 +110,7 @@ def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C
     ``i`` is the 1-based position among the group's values (``index`` overrides it;
     positions only, never the group size). delta0: one per group.
     """
-    gid, t = _layout(offsets)
+    gid, t = flat_layout(offsets)
     _, prev = running_moments(x, offsets, (gid, t))
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
@@ -140,97 +138,6 @@ class TwinSides:
             one = self.succ.take(groups)
             return TwinSides(one, one, one)
         return TwinSides(self.succ.take(groups), self.lo.take(groups), self.up.take(groups))
-
-
-@dataclass(frozen=True)
-class TwinRuns:
-    """Entering twin runs per hypothesis in X_0 order: raw outcome and run position."""
-
-    values: Ragged  # raw outcomes, X_0 order within each hypothesis
-    run: np.ndarray  # (total,) position of each value's run in the X_0 order
-    in_b0: np.ndarray  # (H, m) real X_0 in B_0 (runs that can ever enter)
-    failed: np.ndarray  # (H, m) run failed on the path (and X_0 in B_0)
-
-
-def _path_boxes(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX):
-    """Per outcome: (hypothesis indices, values (h, T, m) along each path (NaN off the path
-    or failed), on_path (h, T), ok_s (h, T, m) the value at hour s lies in B_s (True off the
-    path), in_b0 (h, m)). The one place the entry rule reads B-sets."""
-    paths = hypothesis_paths(hyps, nodes.index, t_max)
-    b_pad = padded(hyps, "bins", t_max + 1)
-    base0 = states.base_codes(nodes.x0)
-    for outcome, idx in hyps.groupby("outcome", sort=False).indices.items():
-        k = FEATURES.index(outcome)
-        code0 = base0 + states.above(outcome, nodes.x0[:, k], 0)
-        vk = nodes.values[:, :, k]
-        p = paths[idx]
-        vals = np.where(p[..., None] >= 0, vk[np.maximum(p, 0)], np.nan)  # (h, T, m)
-        on_path = p >= 0
-        codes = base0[None, None, :] + states.above(
-            outcome, np.nan_to_num(vals, nan=-np.inf), np.arange(1, t_max + 1)[None, :, None]
-        )
-        bs = b_pad[idx][:, 1:, None]
-        ok_s = ~on_path[..., None] | (bs == WHOLE_SPACE) | (codes == bs)
-        b0 = b_pad[idx][:, 0][:, None]
-        yield idx, vals, on_path, ok_s, (b0 == WHOLE_SPACE) | (code0[None, :] == b0)
-
-
-def twin_runs_indexed(
-    hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
-) -> TwinRuns:
-    """``bounds.twin_side`` plus each entering run's position (same entry rule).
-
-    Run i of a_1:t enters iff X_0 in B_0, Xtwin_s in B_s (s = 1..t) and no node of its
-    path failed (NaN). A failed run counts as failed only if its completed hours had not
-    already left B_1:s (it could not have entered whatever it did next), as in
-    ``bounds.twin_side``; so hours a truncating twin never simulated are not failures.
-    Agreement with ``bounds.twin_side`` is tested.
-    """
-    h_total = len(hyps)
-    m = nodes.x0.shape[0]
-    t_h = hyps["t"].to_numpy(np.int64)
-    in_b0 = np.zeros((h_total, m), dtype=bool)
-    failed_all = np.zeros((h_total, m), dtype=bool)
-    enter_all = np.zeros((h_total, m), dtype=bool)
-    last_all = np.zeros((h_total, m))
-    for idx, vals, on_path, ok_s, ib0 in _path_boxes(hyps, nodes, states, t_max):
-        failed = (np.isnan(vals) & on_path[..., None]).any(axis=1)
-        left_b = (on_path[..., None] & ~np.isnan(vals) & ~ok_s).any(axis=1)
-        in_b0[idx] = ib0
-        failed_all[idx] = failed & ib0 & ~left_b
-        enter_all[idx] = ib0 & ok_s.all(axis=1) & ~failed
-        last_all[idx] = vals[np.arange(len(idx)), t_h[idx] - 1, :]
-    hh, ii = np.nonzero(enter_all)  # row-major: X_0 order within each hypothesis
-    sizes = np.bincount(hh, minlength=h_total)
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    return TwinRuns(Ragged(last_all[hh, ii], offsets), ii.astype(np.int64), in_b0, failed_all)
-
-
-def reachable(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, t_max: int = T_MAX
-              ) -> np.ndarray:
-    """(H, T, m) bool: run j can still enter hypothesis h when hour s of its path begins:
-    X_0 in B_0 and every completed hour s' < s in B_s' (a failed, NaN hour counts as
-    inside: it cannot be shown to have left). Hour s of run j is needed for h only then
-    (*depth truncation*: a run that left B_s' never enters h, whatever it does next)."""
-    out = np.zeros((len(hyps), t_max, nodes.x0.shape[0]), dtype=bool)
-    for idx, vals, _, ok_s, ib0 in _path_boxes(hyps, nodes, states, t_max):
-        inside = ok_s | np.isnan(vals)
-        before = np.concatenate([np.ones_like(inside[:, :1]),
-                                 np.logical_and.accumulate(inside[:, :-1], axis=1)], axis=1)
-        out[idx] = ib0[:, None, :] & before
-    return out
-
-
-def hypothesis_paths(hyps: pd.DataFrame, index: dict, t_max: int = T_MAX) -> np.ndarray:
-    """(H, T) node index of a_1:s for s = 1..t (-1 beyond t)."""
-    paths = np.full((len(hyps), t_max), -1, dtype=np.int64)
-    for i, seq in enumerate(hyps["actions"].tolist()):
-        for s in range(1, len(seq) + 1):
-            key = tuple(int(a) for a in seq[:s])
-            if key not in index:
-                raise KeyError(f"twin nodes: no node {key} for hypothesis row {i}")
-            paths[i, s - 1] = index[key]
-    return paths
 
 
 def family_sizes(hyps: pd.DataFrame) -> np.ndarray:
@@ -314,10 +221,10 @@ class SequentialState:
         lo, up = self.lo.take(g), self.up.take(g)
         self.l_star, self.l_fut = np.zeros(h), np.zeros(h)
         self.u_star, self.u_fut = np.ones(h), np.ones(h)
-        self.l_star[g] = _bound(lo, lev_star[g], +1, True, self.c)
-        self.u_star[g] = _bound(up, lev_star[g], -1, True, self.c)
-        self.l_fut[g] = _bound(lo, lev[g], +1, True, self.c)
-        self.u_fut[g] = _bound(up, lev[g], -1, True, self.c)
+        self.l_star[g] = capital_bound(lo, lev_star[g], +1, True, self.c)
+        self.u_star[g] = capital_bound(up, lev_star[g], -1, True, self.c)
+        self.l_fut[g] = capital_bound(lo, lev[g], +1, True, self.c)
+        self.u_fut[g] = capital_bound(up, lev[g], -1, True, self.c)
         self.side = np.zeros((h, 2), dtype=np.int8)
         # level at which a side was found futile: alpha ("primary": p > alpha for sure) or a
         # Holm-aware level alpha / 2^q < alpha (p > that level for sure); 0 if not futile
@@ -518,7 +425,7 @@ class SequentialState:
             g = act[grew]
             self.q_hol[g, col] = q[grew]
             lev = np.log(2.0 * 2.0 ** q[grew] / self.alpha)
-            b = _bound(side.take(g), lev, sign, True, self.c)
+            b = capital_bound(side.take(g), lev, sign, True, self.c)
             if col == 0:
                 self.l_hol[g] = b
             else:
@@ -545,8 +452,8 @@ class SequentialState:
             q_lo = (s.q_lo_hat[g] - self.y_lo[g]) / r
             q_up = (s.q_up_hat[g] - self.y_lo[g]) / r
             q_tw = _group_means(t.succ)
-            k_lo = _crossing(lo, t.lo, 0.5 * (q_lo + q_tw), True, self.c, 1e-3, 100)
-            k_up = _crossing(t.up, up, 0.5 * (q_up + q_tw), True, self.c, 1e-3, 100)
+            k_lo = crossing(lo, t.lo, 0.5 * (q_lo + q_tw), True, self.c, 1e-3, 100)
+            k_up = crossing(t.up, up, 0.5 * (q_up + q_tw), True, self.c, 1e-3, 100)
             p_lo[g] = np.minimum(1.0, 2.0 * np.exp(-k_lo))
             p_up[g] = np.minimum(1.0, 2.0 * np.exp(-k_up))
         # an early rejection was verified exactly at a*: p <= a* (crossing may overstate by tol)
@@ -565,8 +472,8 @@ def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
     ((1/4 + S_tau) log(2 + tau))) for every i > tau (tau = nhat so far). The bet actually
     placed at m is min(lambda_i, c/m) (K+) or min(lambda_i, c/(1-m)) (K-).
     """
-    gid, t = _layout(side.offsets)
-    mu = (0.5 + _segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
+    gid, t = flat_layout(side.offsets)
+    mu = (0.5 + segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
     sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
     s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
@@ -653,75 +560,11 @@ def run_to_stop(st: SequentialState, runs: TwinRuns) -> None:
             break
 
 
-def adaptive_test(
-    hyps: pd.DataFrame,
-    obs: ObservationalSide,
-    nodes: TwinNodes,
-    states: StateBins,
-    *,
-    batch_size: int,
-    alpha: float = 0.05,
-    correction: str = "holm",
-    budget: int | None = None,
-    seed: int = 0,
-    c: float = C_TRUNC,
-    holm_aware: bool | None = None,
-    shards: np.ndarray | None = None,
-    curtail: float = 0.0,
-    combine: str = "union",
-    failed_runs: str = "conservative",
-) -> AdaptiveOutcome:
-    """The adaptive procedure on in-memory twin nodes, runs revealed batch by batch.
-
-    Twin-hours with prefix reuse: node a_1:s costs one hour per run simulated for it, i.e.
-    per run revealed to a hypothesis whose path uses it and whose B_0 holds that run's X_0
-    (``node_needs``); the fixed scheme simulates every node for the budget.
-    ``holm_aware`` (default: on for Holm and Bonferroni, off otherwise): futility at the
-    Holm threshold a side can still face (``SequentialState``); ``shards`` (H,): count the
-    futile sides per shard as the workflow's parallel shards do (default: whole family);
-    ``combine``: "union" (the only rule; "product" was withdrawn, ``PRODUCT_REMOVED``);
-    ``failed_runs``: "conservative" (default: valid whatever the failed runs would have
-    produced) or "drop".
-    """
-    m = nodes.x0.shape[0]
-    budget = m if budget is None else int(budget)
-    if not 0 <= budget <= m:
-        raise ValueError(f"adaptive_test: budget must be in [0, {m}] runs, got {budget}")
-    runs = twin_runs_indexed(hyps, nodes, states)
-    if holm_aware is None:
-        holm_aware = correction in HOLM_AWARE
-    st = SequentialState(hyps, obs, states, budget, int(batch_size), alpha, seed, c,
-                         holm_aware=bool(holm_aware), holm_scope=shards, curtail=curtail,
-                         combine=combine, failed_runs=failed_runs)
-    run_to_stop(st, runs)
-    return outcome(hyps, nodes, states, st, runs, alpha, correction)
-
-
-def outcome(hyps: pd.DataFrame, nodes: TwinNodes, states: StateBins, st: SequentialState,
-            runs: TwinRuns, alpha: float, correction: str) -> AdaptiveOutcome:
-    """The :class:`AdaptiveOutcome` of a state run to its stops on in-memory ``nodes``."""
-    p_lo, p_up, nhat = st.p_values(runs)
-    per_hyp = st.runs_used()
-    paths = hypothesis_paths(hyps, nodes.index)
-    n_nodes = len(nodes.index)
-    used = node_needs(paths, per_hyp, runs.in_b0, n_nodes,
-                      reachable(hyps, nodes, states)).sum(axis=1)
-    whole = node_needs(paths, per_hyp, runs.in_b0, n_nodes).sum()
-    rej_lo, rej_up = correct_by_family(hyps, p_lo, p_up, alpha, correction)
-    return AdaptiveOutcome(
-        p_lo, p_up, st.stop_batch.copy(), used, per_hyp, st.side.copy(), nhat, rej_lo, rej_up,
-        int(used.sum()), int(n_nodes * st.budget),
-        int(node_runs(paths, per_hyp, n_nodes).sum()), paper_hours(hyps, st.budget), int(whole),
-    )
-
-
 def correct_by_family(hyps: pd.DataFrame, p_lo: np.ndarray, p_up: np.ndarray, alpha: float,
                       correction: str) -> tuple[np.ndarray, np.ndarray]:
     """Holm / BY over both sides of every hypothesis of a family (kind), as run_tests does."""
     kind = hyps["kind"].to_numpy() if "kind" in hyps else np.zeros(len(hyps))
-    rej_lo, rej_up = np.zeros(len(hyps), bool), np.zeros(len(hyps), bool)
-    for k in pd.unique(kind):
-        idx = np.flatnonzero(kind == k)
-        r = correct(np.concatenate([p_lo[idx], p_up[idx]]), alpha, correction)
-        rej_lo[idx], rej_up[idx] = r[: len(idx)], r[len(idx):]
-    return rej_lo, rej_up
+    h = len(hyps)
+    r = correct_within(np.concatenate([p_lo, p_up]), np.concatenate([kind, kind]), alpha,
+                       correction)
+    return r[:h], r[h:]

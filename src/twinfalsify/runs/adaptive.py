@@ -25,7 +25,13 @@ import time
 import numpy as np
 import pandas as pd
 
-from twinfalsify.bounds import ObservationalSide, TwinNodes
+from twinfalsify.bounds import (
+    ObservationalSide,
+    TwinNodes,
+    hypothesis_paths,
+    reachable,
+    twin_runs_indexed,
+)
 from twinfalsify.design import ActionBins, StateBins
 from twinfalsify.inference.sequential import (
     CURTAILED,
@@ -36,10 +42,7 @@ from twinfalsify.inference.sequential import (
     SequentialState,
     embed_runs,
     family_sizes,
-    hypothesis_paths,
     node_needs,
-    reachable,
-    twin_runs_indexed,
 )
 from twinfalsify.runs.plan import (
     NODE_COLUMNS,

@@ -1,0 +1,103 @@
+"""One path from a study's stored files to the tests' inputs and p-values.
+
+Every consumer of a twin's tests — the tests rule, the study summary, ``explain``, the
+figures (sensitivity, longitudinal, histograms), the calibration harness — builds its
+hypothesis samples with :func:`twin_samples` (in memory) or :func:`load_twin_tests` (from a
+study's files), and its p-values with :func:`study_results`, so what each of them shows is
+what the tests rule tested: the same entry rule (``bounds.path_boxes``), the failed twin
+runs at their places (``inference.failures``), the same methods, level and correction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from twinfalsify import bounds
+from twinfalsify.design import StateBins
+from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.inference.registry import PER_HYPOTHESIS
+from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide
+from twinfalsify.inference.sensitivity import sensitivity_sweep
+from twinfalsify.io import read_json, read_parquet
+from twinfalsify.schema import ContractError, TwinNodes
+from twinfalsify.stored_runs import TwinPlan, load_nodes, x0_frame
+
+# the files of a study a twin's tests read (keys of the rules' ``input``)
+STORED_INPUTS = ("d", "bins", "hypotheses", "counts", "follow", "plan", "runs")
+
+
+@dataclass(frozen=True)
+class TwinTests:
+    """The inputs of one twin's tests, as the tests rule builds them."""
+
+    hyps: pd.DataFrame
+    samples: HypothesisSamples  # failed runs at their places
+    n_failed: np.ndarray  # (H,) failed runs that could have entered
+    states: StateBins
+    nodes: TwinNodes
+    d: pd.DataFrame
+    run_status: Mapping[str, int]  # twin node-runs per status (runs.parquet)
+
+    def results(self, testing: Mapping[str, Any], seed: int,
+                samples: HypothesisSamples | None = None) -> pd.DataFrame:
+        """The results table of these tests (``samples``: e.g. a widened range instead)."""
+        return study_results(self.hyps, self.samples if samples is None else samples,
+                             self.n_failed, testing, seed)
+
+
+def twin_samples(hyps: pd.DataFrame, obs: ObservationalSide, nodes: TwinNodes,
+                 states: StateBins) -> tuple[HypothesisSamples, np.ndarray]:
+    """(samples, n_failed): both sides of every hypothesis, the failed runs at their places."""
+    twin = bounds.twin_runs(hyps, nodes, states)
+    return bounds.hypothesis_samples(hyps, obs, twin), twin.n_failed
+
+
+def study_results(hyps: pd.DataFrame, samples: HypothesisSamples, n_failed: np.ndarray,
+                  testing: Mapping[str, Any], seed: int) -> pd.DataFrame:
+    """The results table for the config's ``testing`` section (validated: every key set)."""
+    return run_tests(
+        hyps, samples, n_failed,
+        make_methods(testing["methods"], int(seed), alpha=float(testing["alpha"])),
+        alpha=float(testing["alpha"]), correction=testing["correction"],
+        failed_runs=testing["failed_runs"],
+    )  # fmt: skip
+
+
+def load_twin_tests(paths: Mapping[str, str | Path]) -> TwinTests:
+    """One twin's test inputs from a study's files (keys :data:`STORED_INPUTS`)."""
+    missing = set(STORED_INPUTS) - set(paths)
+    if missing:
+        raise ContractError(f"load_twin_tests: missing input path(s) {sorted(missing)}")
+    hyps, obs = bounds.read_observational_side(paths["hypotheses"], paths["counts"],
+                                               paths["follow"])
+    d = read_parquet(paths["d"], "D")
+    plan = TwinPlan.from_json(read_json(paths["plan"]))
+    states = StateBins.from_json(read_json(paths["bins"]))
+    runs = read_parquet(paths["runs"], "twin runs")
+    nodes = load_nodes(runs, plan, x0_frame(d, plan.x0_stay_ids))
+    samples, n_failed = twin_samples(hyps, obs, nodes, states)
+    return TwinTests(
+        hyps=hyps, samples=samples, n_failed=n_failed, states=states, nodes=nodes, d=d,
+        run_status={str(k): int(v) for k, v in runs["status"].value_counts().items()},
+    )  # fmt: skip
+
+
+def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: list[float],
+                progress=None) -> pd.DataFrame:
+    """The sensitivity sweep (``inference.sensitivity``) of these tests: at Delta = 0 exactly
+    the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome."""
+    alpha = float(testing["alpha"])
+    methods = make_methods(testing["methods"], int(seed), alpha=alpha)
+    table = sensitivity_sweep(
+        tt.samples, deltas, methods, alpha, testing["correction"],
+        group=tt.hyps["outcome"].to_numpy(), n_failed=tt.n_failed,
+        failed_runs=testing["failed_runs"], family=tt.hyps["kind"].to_numpy(),
+        per_hypothesis=PER_HYPOTHESIS, progress=progress,
+    )  # fmt: skip
+    return table.rename(columns={"family": "kind"})
