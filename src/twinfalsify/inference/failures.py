@@ -3,7 +3,7 @@
 A twin run that failed (init_failed, irreversible, timeout, error) at or before
 hour t of a hypothesis whose B_0 its X_0 lies in has no outcome: we do not know
 whether it would have entered B_1:t nor what it would have produced. Counted
-per hypothesis as F = n_failed (``bounds.twin_side``).
+per hypothesis as F = n_failed (``bounds.twin_runs``).
 
 - ``drop`` (the paper's behaviour, Cornish et al. 2026, Sec. 6: failed Pulse
   runs are left out): the test sees only the nhat successful runs.
