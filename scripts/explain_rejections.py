@@ -10,7 +10,6 @@ import matplotlib.pyplot as plt
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify.explain import (  # noqa: E402
-    DEFAULT_EXPLAINED,
     explain,
     explained_html,
     rejections_to_explain,
@@ -23,9 +22,9 @@ from twinfalsify.summary import load_study_twin, longitudinal_frame  # noqa: E40
 def main(sm):
     twin = sm.wildcards.twin
     st = load_study_twin({k: v for k, v in sm.input.items()})
-    k = int((sm.params.figures.get("explained") or {}).get("k", DEFAULT_EXPLAINED))
+    k = int(sm.params.figures["explained"]["k"])
     ids, n_rejected = rejections_to_explain(st.results, k)
-    alpha = float(sm.params.testing.get("alpha", 0.05))
+    alpha = float(sm.params.testing["alpha"])
     correction = str(st.results["correction"].iloc[0]) if len(st.results) else "holm"
     results_dir = Path(sm.input.hypotheses).parent.parent
     sections = []

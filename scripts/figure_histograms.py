@@ -13,8 +13,8 @@ from twinfalsify.summary import histogram_data, load_study_twin, pick_hypothesis
 
 def main(sm):
     st = load_study_twin(dict(sm.input.items()))
-    opts = sm.params.figures.get("histograms") or {}
-    alpha = float(sm.params.testing.get("alpha", 0.05))
+    opts = sm.params.figures.get("histograms") or {}  # no default: picked automatically
+    alpha = float(sm.params.testing["alpha"])
     ids = opts.get("hyp_ids")
     if not ids:  # one rejected and one non-rejected case
         first = pick_hypothesis(st.results, rejected=True, prefer_long=False,

@@ -30,7 +30,7 @@ def main(sm):
                                  run_status=st.run_status)
         hyp_id = extend_to_horizon(st.results, st.hyps, hyp_id)  # show t = 1..T
     frame = longitudinal_frame(
-        st, int(hyp_id), alpha=float(testing.get("alpha", 0.05)),
+        st, int(hyp_id), alpha=float(testing["alpha"]),
         quantiles=tuple(sm.params.quantiles),
     )  # fmt: skip
     # hours of the path that are themselves tested hypotheses, and which were rejected

@@ -132,7 +132,6 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None) -> st
     return "\n".join(lines)
 
 
-DEFAULT_EXPLAINED = 3  # rejections explained per twin in the report (figures.explained.k)
 
 
 def rejections_to_explain(results: pd.DataFrame, k: int) -> tuple[list[int], int]:
