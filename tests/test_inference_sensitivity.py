@@ -74,7 +74,7 @@ def _with_failures(seed=3, h=60):
     follow = Ragged.from_groups([rng.uniform(55, 105, k) for k in nf])
     m = 150
     twin_groups, run_groups, fail_groups = [], [], []
-    for i in range(h):
+    for _ in range(h):
         runs = rng.permutation(m)
         k_ok, k_fail = int(rng.integers(30, 120)), int(rng.integers(0, 8))
         ok = np.sort(runs[:k_ok])
@@ -106,8 +106,7 @@ def test_delta_zero_equals_run_tests_with_failed_runs(failed_runs):
     methods = make_methods({"hoeffding": {}, "betting": {}, "bootstrap": {"min_n": 10}}, 5)
     res = run_tests(hyps, s, f, methods, alpha=0.2, correction="holm", failed_runs=failed_runs)
     sweep = sensitivity_sweep(s, [0.0, 0.1], methods, 0.2, "holm", group=outcome,
-                              n_failed=f, failed_runs=failed_runs, family=kind,
-                              per_hypothesis=("hoeffding", "betting"))
+                              n_failed=f, failed_runs=failed_runs, family=kind)
     want = res.groupby(["method", "kind", "outcome"])["rejected"].sum()
     got = sweep[sweep["delta"] == 0.0].set_index(["method", "family", "group"])["n_rejected"]
     assert want.sum() > 0
@@ -115,19 +114,20 @@ def test_delta_zero_equals_run_tests_with_failed_runs(failed_runs):
         assert got[key] == n_rej, key
 
 
-def test_tiled_widenings_equal_one_call_per_widening():
-    """Betting on every widening at once (tiled, tuning fixed) equals one call per widening
-    to the crossing search's accuracy (tol = 1e-3 in log K*), and Delta = 0 bit for bit."""
+def test_sweep_equals_one_call_per_widening_bit_for_bit():
+    """The sweep reuses the data order across widenings (betting.order_cache): every p-value
+    equals a separate call's, bit for bit, and the widenings do change them."""
     from functools import partial
 
     from twinfalsify.inference.betting import betting_test
+    from twinfalsify.inference.failures import failure_pvalues
 
     s, f = _with_failures(seed=4, h=40)
     deltas = [0.0, 0.02, 0.1, 0.3]
     m = partial(betting_test, alpha=0.05)
-    one = sweep_pvalues(m, s, f, deltas, "conservative", per_hypothesis=False)
-    tiled = sweep_pvalues(m, s, f, deltas, "conservative", per_hypothesis=True)
-    for a, b in zip(one, tiled, strict=True):
-        np.testing.assert_array_equal(a[0], b[0])
-        np.testing.assert_allclose(a, b, rtol=2e-3, atol=0)
-    assert not np.allclose(one[0][0], one[0][-1])  # the widenings change the p-values
+    p_lo, p_up = sweep_pvalues(m, s, f, deltas, "conservative")
+    for j, d in enumerate(deltas):
+        lo, up = failure_pvalues(m, widened(s, d), f, "conservative")
+        np.testing.assert_array_equal(p_lo[j], lo)
+        np.testing.assert_array_equal(p_up[j], up)
+    assert not np.allclose(p_lo[0], p_lo[-1])

@@ -21,7 +21,6 @@ import pandas as pd
 from twinfalsify import bounds
 from twinfalsify.design import StateBins
 from twinfalsify.falsify import make_methods, run_tests
-from twinfalsify.inference.registry import PER_HYPOTHESIS
 from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide
 from twinfalsify.inference.sensitivity import sensitivity_sweep
 from twinfalsify.io import read_json, read_parquet
@@ -98,6 +97,6 @@ def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: li
         tt.samples, deltas, methods, alpha, testing["correction"],
         group=tt.hyps["outcome"].to_numpy(), n_failed=tt.n_failed,
         failed_runs=testing["failed_runs"], family=tt.hyps["kind"].to_numpy(),
-        per_hypothesis=PER_HYPOTHESIS, progress=progress,
+        progress=progress,
     )  # fmt: skip
     return table.rename(columns={"family": "kind"})

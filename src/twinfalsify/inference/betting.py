@@ -109,7 +109,9 @@ betting", JRSS-B 86(1):1-27; Ville (1939).
 
 from __future__ import annotations
 
+import hashlib
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,8 +150,47 @@ def _mix64(z: np.ndarray) -> np.ndarray:
 _DATA_ORDER = 1 << 40  # hash domain of the seedless data order (seeded bases are < 2^40)
 
 
+_ORDER_CACHE: dict | None = None  # permutations kept by :func:`order_cache`, else None
+
+
+@contextmanager
+def order_cache(max_bytes: int = 1 << 29):
+    """Within the block, every data order (:func:`_order_keys`) computed is kept and reused.
+
+    A permutation depends on the group sizes, hypothesis keys, copies, seed and side only,
+    never on the values or on [y_lo, y_up], so a sweep that tests the same samples under
+    other ranges (``inference.sensitivity``) orders them once; the p-values are those of
+    separate calls, bit for bit. ``max_bytes`` bounds the memory kept.
+    """
+    global _ORDER_CACHE
+    outer, _ORDER_CACHE = _ORDER_CACHE, {"max": int(max_bytes), "bytes": 0, "perms": {}}
+    try:
+        yield
+    finally:
+        _ORDER_CACHE = outer
+
+
 def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int | None,
                 salt: int) -> np.ndarray:
+    """:func:`_hashed_order`, kept for reuse inside :func:`order_cache`."""
+    cache = _ORDER_CACHE
+    if cache is None:
+        return _hashed_order(sizes, keys, copy, seed, salt)
+    arrays = [np.ascontiguousarray(a, np.int64) for a in (sizes, keys, copy)]
+    key = (hashlib.blake2b(b"".join(a.tobytes() for a in arrays), digest_size=16).digest(),
+           seed, salt, len(arrays[0]))
+    perm = cache["perms"].get(key)
+    if perm is None:
+        perm = _hashed_order(sizes, keys, copy, seed, salt)
+        if cache["bytes"] + perm.nbytes <= cache["max"]:
+            perm.setflags(write=False)
+            cache["perms"][key] = perm
+            cache["bytes"] += perm.nbytes
+    return perm
+
+
+def _hashed_order(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int | None,
+                  salt: int) -> np.ndarray:
     """A pseudo-random permutation within every group (flat indices), seeded or seedless.
 
     Sort by group id + U key, U a hash of (seed, salt, hypothesis key, copy, position in

@@ -32,9 +32,6 @@ METHODS: dict[str, tuple[str, tuple[str, ...], bool]] = {
 }
 
 
-# methods whose p-value of a hypothesis depends on its own samples alone once the tuning is
-# fixed (the bootstrap draws its resamples for the whole family): ``inference.sensitivity``
-PER_HYPOTHESIS = ("hoeffding", "bernstein", "betting")
 # methods whose tuning reads the family's level (``testing.alpha``)
 LEVELLED = ("betting",)
 

@@ -17,23 +17,22 @@ inside the bounds outside them.
 For a negative y_lo the map moves y_lo up (towards 0): a relative, not an absolute,
 widening; the sweep refuses ranges that become empty.
 
-Speed: a method whose p-value of a hypothesis depends on that hypothesis' samples alone
-(``per_hypothesis``: Hoeffding, Bernstein, betting once its tuning level is fixed) is
-called once on every widening at once (the samples tiled, each copy keeping its
-hypothesis' key and so its data order); the others (the bootstrap, whose resamples are
-drawn for the whole family) are called once per widening on the whole family.
+Speed: the betting test's data order depends on the samples' sizes and keys only, never on
+[y_lo, y_up], so the sweep computes it once and reuses it at every widening
+(``betting.order_cache``); every p-value is the one a separate call gives, bit for bit.
 
 Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
-from twinfalsify.inference.failures import failure_pvalues, family_tuned
+from twinfalsify.inference.betting import order_cache
+from twinfalsify.inference.failures import failure_pvalues
 from twinfalsify.inference.multiple_testing import correct_within
 from twinfalsify.inference.samples import HypothesisSamples
 
@@ -53,34 +52,16 @@ def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
 
 def sweep_pvalues(
     method: Method, samples: HypothesisSamples, n_failed: np.ndarray, deltas: Sequence[float],
-    failed_runs: str = "conservative", per_hypothesis: bool = False,
+    failed_runs: str = "conservative",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening.
-
-    Delta = 0 is the main analysis' own call (bit for bit); with ``per_hypothesis`` the
-    other widenings are evaluated in one call on tiled samples, whose p-values agree with
-    one call per widening to the search's accuracy (``tol`` of the betting test: p is never
-    understated either way).
-    """
-    h, k = len(samples), len(deltas)
+    """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening, each
+    the main analysis' own call on the widened samples (Delta = 0: the main analysis)."""
     f = np.asarray(n_failed, np.int64)
-    method = family_tuned(method, h)  # the tuning of the whole family, whatever is tiled
-    p_lo, p_up = np.ones((k, h)), np.ones((k, h))
-    zero = [j for j, d in enumerate(deltas) if float(d) == 0.0]
-    rest = [j for j in range(k) if j not in zero]
-    if zero:
-        p_lo[zero], p_up[zero] = failure_pvalues(method, samples, f, failed_runs)
-    if per_hypothesis and len(rest) > 1:
-        wide = [widened(samples, float(deltas[j])) for j in rest]
-        tiled = samples.tile(len(rest)).with_bounds(np.concatenate([w.y_lo for w in wide]),
-                                                    np.concatenate([w.y_up for w in wide]))
-        lo, up = failure_pvalues(method, tiled, np.tile(f, len(rest)), failed_runs)
-        p_lo[rest], p_up[rest] = np.reshape(lo, (len(rest), h)), np.reshape(up, (len(rest), h))
-    else:
-        for j in rest:
-            p_lo[j], p_up[j] = failure_pvalues(method, widened(samples, float(deltas[j])), f,
-                                               failed_runs)
-    return p_lo, p_up
+    out = []
+    with order_cache():
+        for d in deltas:
+            out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs))
+    return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
 
 def sensitivity_sweep(
@@ -94,7 +75,6 @@ def sensitivity_sweep(
     n_failed: np.ndarray | None = None,
     failed_runs: str = "conservative",
     family: np.ndarray | None = None,
-    per_hypothesis: Collection[str] = (),
     progress: Callable[[str], None] | None = None,
 ) -> pd.DataFrame:
     """Long table (delta, method, family, group, n_hypotheses, n_rejected), both sides counted.
@@ -103,8 +83,7 @@ def sensitivity_sweep(
     family "all"); the correction runs over both sides of every parameter set of a family
     at each (delta, method), as ``falsify.run_tests`` does. ``group`` labels each
     parameter set for counting (default "all"). ``n_failed``/``failed_runs``: the failed
-    twin runs and their handling, as in the main analysis. ``per_hypothesis``: names of the
-    methods that may be called on every widening at once (module doc).
+    twin runs and their handling, as in the main analysis.
     """
     h = len(samples)
     labels = np.full(h, "all", dtype=object) if group is None else np.asarray(group, dtype=object)
@@ -120,7 +99,7 @@ def sensitivity_sweep(
     sizes = cells.value_counts(sort=False)
     rows = []
     for name, fn in methods.items():
-        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, name in per_hypothesis)
+        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs)
         for j, delta in enumerate(deltas):
             rej = correct_within(np.concatenate([p_lo[j], p_up[j]]), np.concatenate([fam, fam]),
                                  alpha, correction)
