@@ -341,7 +341,7 @@ def _heights(con, subjects) -> pd.DataFrame:
     as_cm = np.where(inch & (v >= 120) & (v <= 230), v, as_cm)  # cm in an inch item
     as_cm = np.where(~inch & (v >= 47) & (v <= 91), v * INCH, as_cm)  # inches in a cm item
     h = h.assign(height_cm=as_cm)
-    h = h[hourly._within_limits("height_cm", h["height_cm"]).to_numpy()]
+    h = h[hourly.within_limits("height_cm", h["height_cm"]).to_numpy()]
     return h[["subject_id", "time", "height_cm"]].sort_values("time", kind="stable")
 
 
@@ -361,7 +361,7 @@ def _bmi_implausible(con, subject: np.ndarray, time: np.ndarray, kg: np.ndarray)
     q = pd.merge_asof(q.sort_values("time", kind="stable"), h, on="time", by="subject_id",
                       direction="backward")
     bmi = q["value"] / (q["height_cm"] / 100) ** 2
-    bad = q["height_cm"].notna() & ~hourly._within_limits("bmi", bmi)
+    bad = q["height_cm"].notna() & ~hourly.within_limits("bmi", bmi)
     out[q.loc[bad, "row"].to_numpy()] = True
     return out
 
