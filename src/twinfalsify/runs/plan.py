@@ -408,49 +408,6 @@ def status_summary(runs: pd.DataFrame) -> dict:
     return json.loads(counts.to_json(orient="index"))
 
 
-def _clamp_features(value: object) -> set[str]:
-    """Feature names in one ``clamped`` cell: JSON text or dict {feature: [given, used]}."""
-    if value is None or (isinstance(value, float) and np.isnan(value)):
-        return set()
-    if isinstance(value, str):
-        if not value.strip():
-            return set()
-        try:
-            value = json.loads(value)
-        except json.JSONDecodeError as exc:
-            raise ContractError(f"twin runs: column clamped holds non-JSON {value[:60]!r}") from exc
-    if not isinstance(value, dict):
-        raise ContractError(f"twin runs: column clamped must hold JSON objects, got {value!r}")
-    return set(value)
-
-
-def clamp_shares(runs: pd.DataFrame) -> dict[str, object]:
-    """Share of twin runs whose X_0 the twin clamped, per feature.
-
-    A run = one initial stay (X_0); its ``clamped`` record ({feature: [given,
-    used]}) is the same on every node row of it (clamping happens at
-    initialisation), so the union over its rows is taken. Returns {"runs": m,
-    "any": share of runs with any clamp, "by_feature": {feature: share}} with
-    shares in [0, 1]; features never clamped are left out.
-    """
-    for col in ("init_stay_id", "clamped"):
-        if col not in runs.columns:
-            raise ContractError(f"twin runs: column {col} missing (needed for clamp shares)")
-    per_run: dict[int, set[str]] = {}
-    for stay, cell in zip(runs["init_stay_id"].tolist(), runs["clamped"].tolist(), strict=True):
-        per_run.setdefault(int(stay), set()).update(_clamp_features(cell))
-    m = len(per_run)
-    counts: dict[str, int] = {}
-    for feats in per_run.values():
-        for f in feats:
-            counts[f] = counts.get(f, 0) + 1
-    return {
-        "runs": m,
-        "any": (sum(1 for f in per_run.values() if f) / m) if m else 0.0,
-        "by_feature": {f: counts[f] / m for f in sorted(counts)},
-    }
-
-
 FAILING_WARN = 0.5  # a twin failing every run of more than this share of X_0 is warned about
 
 

@@ -632,11 +632,6 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
     }, index=b.index)
 
 
-def sofa_score(b: pd.DataFrame) -> pd.Series:
-    """Total SOFA per row: the sum of ``sofa_components``."""
-    return sofa_components(b).sum(axis=1)
-
-
 SOFA_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
                  "sofa_gcs_component", "sofa_rass", "sofa_creatinine")
 BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
