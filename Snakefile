@@ -17,7 +17,9 @@ include: "workflow/rules/design.smk"
 include: "workflow/rules/twins.smk"
 include: "workflow/rules/tests.smk"
 include: "workflow/rules/adaptive.smk"
-include: "workflow/rules/outputs.smk"
+include: "workflow/rules/tables.smk"
+include: "workflow/rules/figures.smk"
+include: "workflow/rules/report.smk"
 include: "workflow/rules/calibration.smk"
 
 

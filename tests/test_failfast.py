@@ -532,10 +532,10 @@ def test_mixed_twin_versions_are_logged_as_a_warning(tmp_path):
 def test_an_answer_line_over_the_cap_is_a_protocol_error_not_a_memory_blow_up(monkeypatch):
     """A twin that writes a huge line (here: over a cap lowered to 64 kB) gets the run an
     error naming the cap; the line is not read into memory."""
-    from twinfalsify.runs import runner
+    from twinfalsify.runs import worker
 
-    monkeypatch.setattr(runner, "MAX_LINE_BYTES", 64 << 10)
-    monkeypatch.setattr(runner._Worker.ask, "__defaults__", (64 << 10,))
+    monkeypatch.setattr(worker, "MAX_LINE_BYTES", 64 << 10)
+    monkeypatch.setattr(worker.Worker.ask, "__defaults__", (64 << 10,))
     x0, doses, seeds = _many(2)
     seeds = np.array([3, 4], dtype=np.uint64)
     script = ("import sys, runpy\n"

@@ -276,7 +276,8 @@ def test_what_reruns_after_which_change(study):
 # ---- over-broad reruns, reruns on every start, the documented remedy ----------------------
 
 
-@pytest.mark.parametrize("module", ["runs/runner.py", "runs/command.py"])
+@pytest.mark.parametrize("module", ["runs/runner.py", "runs/worker.py",
+                                    "runs/command.py"])
 def test_a_protocol_client_edit_reruns_no_in_process_twin(study, module):
     """The builtin twin simulated in the shard's own process (biased) never runs the protocol
     client: editing it reruns the shards of the twins that run through it (the served oracle,

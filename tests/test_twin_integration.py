@@ -20,6 +20,7 @@ from twinfalsify.runs import plan as tp
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.schema import FEATURES, STAY_ID
+from twinfalsify.summary import clamp_shares
 
 TESTS = Path(__file__).resolve().parent
 PULSE_FIXTURE = TESTS / "fixtures" / "pulse-reference"
@@ -119,9 +120,9 @@ def test_faulty_command_twin_every_node_accounted(small_study):
         seq = tp.parse_node(node)
         want = expected(x0_5, study.actions.doses(np.asarray(seq)).tolist(), seeds[5])[-1]
         assert good.loc[node, list(FEATURES)].to_dict() == pytest.approx(want, rel=1e-12)
-    shares = tp.clamp_shares(runs)
-    assert shares == {"runs": 7, "any": pytest.approx(1 / 7),
-                      "by_feature": {"HR": pytest.approx(1 / 7)}}
+    shares = clamp_shares(runs)
+    assert shares["feature"].tolist() == ["HR"] and shares["x0_clamped"].tolist() == [1]
+    assert shares["share"].tolist() == pytest.approx([1 / 7])
 
 
 def _recorded_setup():
@@ -171,7 +172,7 @@ def test_recorded_pulse_through_the_shard_runner():
             for s in range(1, len(seq) + 1):
                 got = table.loc[(sid, tp.node_name(seq[:s])), list(FEATURES)].to_dict()
                 assert got == pytest.approx(res["hours"][s - 1], rel=1e-12)
-    assert tp.clamp_shares(runs)["any"] == 0.0
+    assert clamp_shares(runs).empty
 
 
 def test_clamp_shares_reads_json_and_dicts():
@@ -180,5 +181,5 @@ def test_clamp_shares_reads_json_and_dicts():
         "clamped": ['{"HR": [131.0, 110.0]}', '{"HR": [131.0, 110.0]}',
                     {"HR": [40, 50], "RR": [30, 20]}, "{}", None],
     })  # fmt: skip
-    assert tp.clamp_shares(runs) == {"runs": 4, "any": 0.5,
-                                     "by_feature": {"HR": 0.5, "RR": 0.25}}
+    shares = clamp_shares(runs).set_index("feature")["share"]
+    assert shares.to_dict() == {"HR": 0.5, "RR": 0.25}

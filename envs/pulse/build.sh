@@ -180,9 +180,11 @@ step_python() {
 # Pulse's engine data (substances, compounds, patients, environments, nutrition, ecg, config) is
 # generated from data/Data.xlsx by Pulse's Java DataSetReader (Apache POI). The POI OOXML jar is
 # missing from the public snapshot and UnitConverter needs the native PulseJNI (not built): our
-# stand-ins in envs/pulse/datagen/ replace both; javac takes them first on the source path.
+# own stand-ins replace both (envs/pulse/datagen/poi-standins/ and jni-standins/, see
+# datagen/README.md); javac takes them first on the source path.
 step_data() {
     local dg=$PREFIX/datagen cp n d
+    local standins=$HERE/datagen:$HERE/datagen/poi-standins:$HERE/datagen/jni-standins
     rm -rf "$dg"
     mkdir -p "$dg/bind" "$dg/classes" "$dg/out"
     find "$SRC/src/schema" -name '*.proto' -print0 \
@@ -191,7 +193,7 @@ step_data() {
     cp=$(find "$SRC/src/java/jar" -name '*.jar' ! -name 'poi*' | sort | tr '\n' ':')
     cp+=/usr/share/java/protobuf.jar:/usr/share/java/protobuf-util.jar
     javac -nowarn -encoding UTF-8 -d "$dg/classes" -cp "$cp" \
-        -sourcepath "$HERE/datagen:$SRC/src/java:$dg/bind" "$HERE/datagen/GenData.java" \
+        -sourcepath "$standins:$SRC/src/java:$dg/bind" "$HERE/datagen/GenData.java" \
         >>"$LOGS/data.log" 2>&1 || die "javac failed, see $LOGS/data.log"
     (cd "$dg/out" && java -cp "$dg/classes:$cp" GenData "$SRC/data/Data.xlsx") >>"$LOGS/data.log" 2>&1 \
         || die "data generation failed, see $LOGS/data.log"

@@ -319,10 +319,3 @@ def load_yaml_strict(path: str | Path) -> Any:
         return yaml.load(Path(path).read_text(), Loader=Strict)  # noqa: S506 - SafeLoader
     except yaml.YAMLError as exc:
         raise ContractError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-
-
-def validate_config(config: dict, schema_path: str | Path) -> None:
-    """Raise ContractError with :func:`config_error`'s one line when the config is invalid."""
-    problem = config_error(config, schema_path)
-    if problem:
-        raise ContractError(f"{Path(schema_path).name}: {problem}")

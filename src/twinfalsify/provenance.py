@@ -243,8 +243,9 @@ NEVER_LEFT_OUT = {"twinfalsify.inference.hoeffding"}  # its radius draws the fig
 # twins only, and checks a command twin's command; the plan tells a protocol twin apart by
 # type); no other rule script starts a twin. Left out of every rule but the shards of twins
 # that run through it (workflow/rules/common.smk), so an edit of the client reruns only those.
-PROTOCOL_CLIENT_MODULES = ("twinfalsify.runs.runner", "twinfalsify.runs.command",
-                           "twinfalsify.runs.protocol_twin", "twinfalsify.runs.protocol")
+PROTOCOL_CLIENT_MODULES = ("twinfalsify.runs.runner", "twinfalsify.runs.worker",
+                           "twinfalsify.runs.command", "twinfalsify.runs.protocol_twin",
+                           "twinfalsify.runs.protocol")
 
 
 def code_scope(config: dict, all_methods: bool = False) -> tuple[list[str], list[str]]:

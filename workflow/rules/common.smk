@@ -309,3 +309,18 @@ def table_source_files():
     from twinfalsify.sources.table import table_files
 
     return [str(f) for f in table_files(config["source"]["table"]["path"]).files]
+
+
+# Everything summary.load_study_twin needs for one twin (wildcard {twin}).
+STUDY_TWIN_INPUTS = {
+    "d0": f"{R}/d0.parquet",
+    "d": f"{R}/d.parquet",
+    "actions": f"{R}/design/actions.json",
+    "bins": f"{R}/design/bins.json",
+    "hypotheses": f"{R}/design/hypotheses.parquet",
+    "counts": f"{R}/observational/counts.parquet",
+    "follow": f"{R}/observational/follow.parquet",
+    "plan": f"{R}/twin_plan.json",
+    "runs": f"{twin_dir()}/runs.parquet",
+    "results": f"{twin_dir()}/results.parquet",
+}

@@ -6,7 +6,7 @@
 runs a short battery against the twin's command and prints one row per check (pass, fail
 or skip) with, for each failure, what to change. Exit code 0 when nothing failed, 1
 otherwise, 2 when the twin cannot be named (bad spec or config). The checks use the
-study's own protocol client (``runs.runner._Worker``, ``runs.protocol.check_hello`` and
+study's own protocol client (``runs.worker.Worker``, ``runs.protocol.check_hello`` and
 ``check_result``), so a twin that passes them is accepted by a study's runs:
 
 hello            the hello answer: protocol version, name and version strings, every
@@ -57,12 +57,12 @@ from typing import Any
 import numpy as np
 
 from twinfalsify.runs.protocol import ProtocolError, check_hello, check_result, check_results
-from twinfalsify.runs.runner import (
+from twinfalsify.runs.worker import (
     SHUTDOWN_GRACE_S,
     STARTUP_TIMEOUT_S,
-    _Worker,
-    _WorkerDied,
-    _WorkerTimeout,
+    Worker,
+    WorkerDied,
+    WorkerTimeout,
     resolve_command,
 )
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, STAY_ID, T_MAX, TIME, ContractError
@@ -199,8 +199,8 @@ class Checker:
     startup_timeout_s: float | None = None  # hello wait; None: max(timeout_s, 60 s)
     outcomes: list[Outcome] = field(default_factory=list)
     hello: dict[str, Any] = field(default_factory=dict)
-    _workers: list[_Worker] = field(default_factory=list)
-    _worker: _Worker | None = None  # the process the battery runs on
+    _workers: list[Worker] = field(default_factory=list)
+    _worker: Worker | None = None  # the process the battery runs on
     _quiet: dict[int, bool] = field(default_factory=dict)  # process -> no stray line yet
     _ids: int = 0
 
@@ -211,12 +211,12 @@ class Checker:
             fix = fix or FIXES.get(name, "")
         self.outcomes.append(Outcome(name, ok, detail, fix, warn))
 
-    def start(self) -> _Worker:
-        worker = _Worker(self.command, self.env)
+    def start(self) -> Worker:
+        worker = Worker(self.command, self.env)
         self._workers.append(worker)
         return worker
 
-    def stray(self, worker: _Worker, wait: bool = True) -> list[str]:
+    def stray(self, worker: Worker, wait: bool = True) -> list[str]:
         """Lines the twin wrote after its answer (there must be none); ``wait`` listens for
         QUIET_S first."""
         if wait:
@@ -237,7 +237,7 @@ class Checker:
         return {"op": "simulate", "id": f"check.{self._ids}", "x0": x0,
                 "doses": [list(d) for d in doses], "hours": len(doses), "seed": seed, **extra}
 
-    def simulate(self, worker: _Worker, request: dict[str, Any]) -> _Run:
+    def simulate(self, worker: Worker, request: dict[str, Any]) -> _Run:
         """Send one request; a crash, hang or broken answer is the run's ``problem``."""
         run = _Run(request)
         t0 = time.monotonic()
@@ -247,12 +247,12 @@ class Checker:
             res = check_result(msg, request["id"], request["hours"], FEATURES,
                                self.hello["declared_units"], FEATURES,
                                request.get("continue_while"))
-        except _WorkerTimeout:
+        except WorkerTimeout:
             run.seconds = time.monotonic() - t0
             run.problem = f"no answer within timeout_s = {self.timeout_s:g} s"
             worker.kill()
             return run
-        except _WorkerDied as exc:
+        except WorkerDied as exc:
             run.problem = f"the twin exited during the run ({exc})"
             return run
         except ProtocolError as exc:
@@ -273,7 +273,7 @@ class Checker:
                 worker.kill()
 
     # -- the checks --------------------------------------------------------------------
-    def check_hello(self) -> _Worker | None:
+    def check_hello(self) -> Worker | None:
         """Start the first worker and check its hello; None when nothing else can run."""
         try:
             resolve_command(self.command, self.env)
@@ -283,10 +283,10 @@ class Checker:
             return None
         try:
             msg = worker.ask({"op": "hello", "protocol": 1}, self.hello_wait)
-        except _WorkerTimeout:
+        except WorkerTimeout:
             self.add("hello", False, *self._why_no_hello(worker))
             return None
-        except _WorkerDied as exc:
+        except WorkerDied as exc:
             self.add("starts", False, f"the twin exited before answering hello: {exc}")
             return None
         except ProtocolError as exc:
@@ -315,7 +315,7 @@ class Checker:
             return self.startup_timeout_s
         return max(self.timeout_s, STARTUP_TIMEOUT_S)
 
-    def _why_no_hello(self, worker: _Worker) -> tuple[str, str]:
+    def _why_no_hello(self, worker: Worker) -> tuple[str, str]:
         """(detail, fix) for a hello that did not come: closing stdin makes a buffering
         twin exit and flush, so an answer arriving then shows unflushed stdout."""
         detail = f"no hello answer within {self.hello_wait:g} s"
@@ -344,7 +344,7 @@ class Checker:
                     f"{HINT_SLOW_START}; or {HINT_UNFLUSHED}")
         return detail + (f"; stderr tail: {tail}" if tail else ""), HINT_EXIT
 
-    def run_battery(self, worker: _Worker, x0s: list[dict[str, float]]) -> list[_Run]:
+    def run_battery(self, worker: Worker, x0s: list[dict[str, float]]) -> list[_Run]:
         """Every X_0 under every dose sequence; checks protocol, stdout, statuses, ranges."""
         hours = min(T_MAX, self.hello["capabilities"].get("max_hours") or T_MAX)
         runs, stray = [], []
@@ -412,34 +412,34 @@ class Checker:
                               else "") + per_hour)
         return runs
 
-    def _hello_quietly(self, worker: _Worker) -> None:
+    def _hello_quietly(self, worker: Worker) -> None:
         try:
             worker.ask({"op": "hello", "protocol": 1}, max(self.timeout_s, STARTUP_TIMEOUT_S))
-        except (_WorkerTimeout, _WorkerDied, ProtocolError):
+        except (WorkerTimeout, WorkerDied, ProtocolError):
             pass
 
-    def _unknown_op(self, worker: _Worker) -> str:
+    def _unknown_op(self, worker: Worker) -> str:
         if worker.proc.poll() is not None:
             return ""
         try:
             msg = worker.ask({"op": "conformance_check_unknown_op"}, min(self.timeout_s, 5.0))
-        except _WorkerTimeout:
+        except WorkerTimeout:
             worker.kill()
             return "no answer to an unknown op (answer {\"op\": \"error\", ...})"
-        except (_WorkerDied, ProtocolError) as exc:
+        except (WorkerDied, ProtocolError) as exc:
             worker.kill()
             return f"unknown op: {exc}"
         if msg.get("op") != "error":
             return f"unknown op answered with op {msg.get('op')!r}, expected 'error'"
         return ""
 
-    def main(self) -> _Worker:
+    def main(self) -> Worker:
         """The process the battery ran on, or a new one if it had to be stopped."""
         if self._worker is None or self._worker.proc.poll() is not None:
             self._worker = self.fresh()
         return self._worker
 
-    def fresh(self) -> _Worker:
+    def fresh(self) -> Worker:
         worker = self.start()
         self._hello_quietly(worker)
         return worker
@@ -504,11 +504,11 @@ class Checker:
             stray = self.stray(worker)
             if stray:
                 diffs.append(f"a line after the batch answer: {stray[0]!r}")
-        except _WorkerTimeout:
+        except WorkerTimeout:
             worker.kill()
             diffs = [f"no answer to a batch of {len(requests)} within "
                      f"{self.timeout_s * len(requests):g} s"]
-        except (_WorkerDied, ProtocolError) as exc:
+        except (WorkerDied, ProtocolError) as exc:
             worker.kill()
             diffs = [f"batch answer: {exc}"]
         self.add("batch", not diffs, diffs[0] if diffs else
@@ -645,9 +645,9 @@ class Checker:
         try:
             msg = worker.ask({"op": "shutdown"}, SHUTDOWN_GRACE_S)
             problem = "" if msg.get("op") == "bye" else f"answered op {msg.get('op')!r}"
-        except _WorkerTimeout:
+        except WorkerTimeout:
             problem = f"no bye within {SHUTDOWN_GRACE_S:g} s"
-        except (_WorkerDied, ProtocolError) as exc:
+        except (WorkerDied, ProtocolError) as exc:
             problem = f"no bye: {exc}"
         code = None
         if not problem:

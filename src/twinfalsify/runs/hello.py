@@ -100,7 +100,7 @@ def projected_cost(plan_hours: dict[str, int], runs: int, hello: dict[str, Any],
 
 def cost_line(twin: str, cost: dict[str, Any]) -> str:
     """One line for the console and the log: engine-hours and, when known, wall time."""
-    from twinfalsify.runs.runner import _fmt_duration
+    from twinfalsify.runs.runner import format_duration
 
     line = (f"twin {twin}: the plan asks {cost['runs']:,} runs, {cost['engine_hours']:,} "
             f"engine-hours ({cost['counted_as']})")
@@ -108,4 +108,4 @@ def cost_line(twin: str, cost: dict[str, Any]) -> str:
         why = cost.get("unknown_because") or "not measured"
         return line + f"; seconds per simulated hour unknown ({why})"
     return (line + f"; at {cost['seconds_per_hour']:.3g} s per simulated hour on "
-            f"{cost['workers']} worker(s): about {_fmt_duration(cost['wall_seconds'])} wall")
+            f"{cost['workers']} worker(s): about {format_duration(cost['wall_seconds'])} wall")

@@ -178,7 +178,7 @@ def serve_forever(
 
 
 # ---------------------------------------------------------------------------
-# Client-side validation (used by runs.runner). Every check raises
+# Client-side validation (used by runs.worker). Every check raises
 # ProtocolError with a message naming the field and the problem, so the
 # runner can record it as the run's "error" message.
 

@@ -18,15 +18,15 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify.runs.protocol import ProtocolError, check_result
-from twinfalsify.runs.runner import (
+from twinfalsify.runs.runner import simulate_via_protocol
+from twinfalsify.runs.worker import (
     DEFAULT_BATCH_SIZE,
     DEFAULT_FAIL_FAST_RUNS,
     DEFAULT_MAX_RESTARTS,
-    _Pool,
-    _WorkerDied,
-    _WorkerTimeout,
+    WorkerDied,
+    WorkerTimeout,
     resolve_command,
-    simulate_via_protocol,
+    start_worker,
 )
 from twinfalsify.schema import FEATURES, ContractError
 from twinfalsify.twins.base import SimResult
@@ -58,7 +58,7 @@ class ProtocolTwin:
         self.fail_fast_runs, self.max_restarts = fail_fast_runs, max_restarts
         self._truncates: bool | None = None
         self.last_hello: dict[str, Any] = {}  # name and version the twin last said hello with
-        # worker trouble of the last simulate call (runner._Pool.worker_stats)
+        # worker trouble of the last simulate call (runs.worker.WorkerPool.worker_stats)
         self.last_workers: dict[str, int] = {}
 
     def hello(self, probe: dict[str, float] | None = None, hours: int = 1) -> dict[str, Any]:
@@ -71,11 +71,8 @@ class ProtocolTwin:
         """
         full_env = {**os.environ, **self.env} if self.env else None
         cmd = resolve_command(self.command, full_env)
-        pool = _Pool(cmd, full_env, np.empty((0, len(FEATURES))), np.empty((0, 1, 2)),
-                     np.empty(0, dtype=np.uint64), np.ones(1, dtype=int), self.timeout_s,
-                     self.retries, FEATURES)
         try:
-            worker = pool._start_worker(0)
+            worker = start_worker(cmd, full_env, self.timeout_s)
         except ContractError as exc:  # name the twin as the config does
             raise ContractError(f"twins.{self.name}: {exc}") from None
         try:
@@ -83,7 +80,6 @@ class ProtocolTwin:
             if probe is not None:
                 hello["probe"] = self._probe(worker, probe, hours)
         finally:
-            pool.workers.pop(0, None)
             worker.close()
         return json.loads(json.dumps(hello))
 
@@ -95,8 +91,8 @@ class ProtocolTwin:
             answer = worker.ask(request, self.timeout_s)
             status, message = check_result(answer, "probe.0", hours, FEATURES,
                                            worker.hello["declared_units"], FEATURES).status, ""
-        except (_WorkerDied, _WorkerTimeout, ProtocolError) as exc:
-            status = "timeout" if isinstance(exc, _WorkerTimeout) else "error"
+        except (WorkerDied, WorkerTimeout, ProtocolError) as exc:
+            status = "timeout" if isinstance(exc, WorkerTimeout) else "error"
             message = str(exc) or f"no answer within {self.timeout_s:g} s"
         else:
             message = str(answer.get("message", "")) if status != "ok" else ""

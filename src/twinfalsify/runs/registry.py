@@ -11,7 +11,7 @@ from typing import Any
 
 import pandas as pd
 
-from twinfalsify.runs.runner import DEFAULT_FAIL_FAST_RUNS, DEFAULT_MAX_RESTARTS
+from twinfalsify.runs.worker import DEFAULT_FAIL_FAST_RUNS, DEFAULT_MAX_RESTARTS
 from twinfalsify.schema import ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import SyntheticWorld
 from twinfalsify.twins.base import Twin

@@ -341,7 +341,7 @@ def _heights(con, subjects) -> pd.DataFrame:
     as_cm = np.where(inch & (v >= 120) & (v <= 230), v, as_cm)  # cm in an inch item
     as_cm = np.where(~inch & (v >= 47) & (v <= 91), v * INCH, as_cm)  # inches in a cm item
     h = h.assign(height_cm=as_cm)
-    h = h[hourly._within_limits("height_cm", h["height_cm"]).to_numpy()]
+    h = h[hourly.within_limits("height_cm", h["height_cm"]).to_numpy()]
     return h[["subject_id", "time", "height_cm"]].sort_values("time", kind="stable")
 
 
@@ -361,7 +361,7 @@ def _bmi_implausible(con, subject: np.ndarray, time: np.ndarray, kg: np.ndarray)
     q = pd.merge_asof(q.sort_values("time", kind="stable"), h, on="time", by="subject_id",
                       direction="backward")
     bmi = q["value"] / (q["height_cm"] / 100) ** 2
-    bad = q["height_cm"].notna() & ~hourly._within_limits("bmi", bmi)
+    bad = q["height_cm"].notna() & ~hourly.within_limits("bmi", bmi)
     out[q.loc[bad, "row"].to_numpy()] = True
     return out
 
@@ -630,11 +630,6 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
         # < 34 mL (200 mL/day) 4 points, AI-Clinician's thresholds
         "renal": pts([cr < 1.2, cr >= 1.2, cr >= 2, (cr >= 3.5) | (uo < 84), (cr > 5) | (uo < 34)]),
     }, index=b.index)
-
-
-def sofa_score(b: pd.DataFrame) -> pd.Series:
-    """Total SOFA per row: the sum of ``sofa_components``."""
-    return sofa_components(b).sum(axis=1)
 
 
 SOFA_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirubin", "sofa_gcs",
@@ -909,36 +904,71 @@ def extract_mimic3(folder: Path, *, t_max: int = schema.T_MAX, threads: int = 1,
         con.close()
 
 
-def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
-             opts: Mimic3Options, layout: Layout = MIMIC3) -> Mimic3Cohort:
-    allst = _stays(con, layout)
+@dataclass
+class _Hours:
+    """The hourly blocks of every stay, on the anchor (``_hours``)."""
+
+    raw: pd.DataFrame  # block means, (icustay_id, t) on the anchor, t = 0..t_max
+    held: pd.DataFrame  # the same after sample-and-hold
+    offset: pd.Series  # per anchored stay: hours from INTIME to t = 0
+    t0: pd.Series  # per anchored stay: the time of t = 0
+    full: pd.Index  # anchored stays with every hour 0..t_max
+    anchor_desc: str  # the CONSORT step ``anchor``'s description
+    n_implausible: pd.Series | None  # per stay: charted values set aside as implausible
+
+
+@dataclass
+class _Imputed:
+    """The cohort's hours after the own-weight fill and 1-NN imputation (``_impute``)."""
+
+    held: pd.DataFrame  # every feature of every hour, imputed where still missing
+    missing_after_hold: pd.DataFrame  # weight and labs: True = still missing after the hold
+    n_own_weight: pd.Series  # per stay: hours given the patient's own earlier weight
+    weight_implausible: pd.Index  # stays whose imputed weight is implausible
+    n_weight_stays: int  # stays with a weight imputed
+    n_weight_hours: int  # stay-hours with a weight imputed
+
+
+def _urine_irrigant_counts(con) -> pd.Series:
+    """Per stay: the OUTPUTEVENTS rows of a GU irrigant (subtracted from the urine output)."""
+    neg = data_table("urine.csv").query("sign < 0")[["itemid"]].astype("int64")
+    con.register("uo_neg", neg)
+    return con.execute("""
+        SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
+        WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_neg)
+        GROUP BY 1""").df().set_index("icustay_id")["n"]
+
+
+def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic3Options,
+                       evidence: dict, ev_counts: dict, wd_inputs: dict
+                       ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The criteria read from the stay and its events, ``adult`` to ``not_withdrawn``, into
+    ``crit``; returns the suspected infections and the max SOFA (for the audit)."""
     ids_all = allst.index
-    crit = pd.DataFrame(index=ids_all)  # True = met, False = failed, NA = not evaluated
     crit["adult"] = (allst["age"] >= 18).to_numpy()
-    evidence: dict = {}
     inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence)
     crit["suspected_infection"] = inf["in_window"].reindex(ids_all).fillna(False).astype(bool)
     has_onset = inf.index[inf["in_window"].to_numpy()]
     sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
             if len(has_onset) else pd.DataFrame(columns=["max_sofa", "sofa_organs"]))
     crit["sofa_ge_2"] = (sofa["max_sofa"] >= 2).reindex(ids_all).astype("boolean")
-    ev_counts: dict = {}
     if opts.sofa == "ai_clinician":  # urine output read: irrigant rows subtracted, counted
-        neg = data_table("urine.csv").query("sign < 0")[["itemid"]].astype("int64")
-        con.register("uo_neg", neg)
-        ev_counts["urine_irrigant"] = con.execute("""
-            SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
-            WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_neg)
-            GROUP BY 1""").df().set_index("icustay_id")["n"]
+        ev_counts["urine_irrigant"] = _urine_irrigant_counts(con)
     crit["mortality_documented"] = allst["hospital_expire_flag"].isin([0, 1]).to_numpy()
     documented = con.execute("""
         SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
         UNION SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_CV""").df()
     documented = set(documented.iloc[:, 0])
     crit["intake_documented"] = ids_all.isin(list(documented))
-    wd_inputs: dict = {}
     crit["not_withdrawn"] = ~ids_all.isin(withdrawn(con, allst, opts, inputs=wd_inputs))
+    return inf, sofa
 
+
+def _hours(con, allst: pd.DataFrame, crit: pd.DataFrame, t_max: int, anchor: str,
+           window_h: int, opts: Mimic3Options, ev_counts: dict) -> _Hours:
+    """Hourly blocks of every stay, anchored; the criteria ``anchor`` and
+    ``stay_covers_window`` into ``crit``."""
+    ids_all = allst.index
     # hourly blocks k = 0..n_blk - 1 from INTIME for every stay: enough to find the anchor
     # and hold t_max hours after it (intime: the anchor is block 0)
     window = window_h if anchor == "first_vitals" else 1
@@ -970,22 +1000,33 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     held = realign(held, offset, t_max)
     full = held.index.get_level_values("icustay_id").value_counts()
     full = full.index[full == t_max + 1]  # anchored stays with every hour 0..t_max (blocks)
+    return _Hours(raw=raw, held=held, offset=offset, t0=t0_all, full=full,
+                  anchor_desc=anchor_desc, n_implausible=n_implausible)
+
+
+def _weight_documented(con, allst: pd.DataFrame, held: pd.DataFrame, t_max: int,
+                       opts: Mimic3Options) -> tuple[pd.Series, str]:
+    """Per stay: whether its weight is documented as ``opts.weight_missing`` asks; and the
+    CONSORT description."""
     # weight: charted in hour t or held (72 h) from before it, never from a later charting;
     # hours still without one are imputed from other stays (weight_missing="impute", the
     # stay needs a weight charted in [INTIME - 72 h, OUTTIME]: documented, a selection
     # criterion, never a value) or the stay is excluded ("exclude")
-    causal_w = held["weight"].notna().groupby(level=0).all()
     if opts.weight_missing == "exclude":
-        wd = causal_w
-        w_desc = f"weight charted at or before the end of every hour t = 0..{t_max} (held 72 h)"
-    else:
-        wev = _events(con, allst, intime - 72 * HOUR, allst["outtime"], ("weight",), opts)
-        wd = pd.Series(ids_all.isin(wev["icustay_id"].unique()), index=ids_all)
-        w_desc = ("a weight charted in [INTIME - 72 h, OUTTIME]; hours without one charted "
-                  "at or before their end are imputed from other stays")
-    crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
-    vit = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
-    crit["vitals_complete"] = vit.reindex(full).reindex(ids_all).astype("boolean")
+        wd = held["weight"].notna().groupby(level=0).all()
+        return wd, f"weight charted at or before the end of every hour t = 0..{t_max} (held 72 h)"
+    ids_all = allst.index
+    wev = _events(con, allst, allst["intime"] - 72 * HOUR, allst["outtime"], ("weight",), opts)
+    wd = pd.Series(ids_all.isin(wev["icustay_id"].unique()), index=ids_all)
+    return wd, ("a weight charted in [INTIME - 72 h, OUTTIME]; hours without one charted "
+                "at or before their end are imputed from other stays")
+
+
+def _stays_per_patient(allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic3Options
+                       ) -> tuple[pd.Series, str]:
+    """The criterion ``stays_per_patient`` (on the stays meeting every criterion before it)
+    and its CONSORT description."""
+    ids_all = allst.index
     # stays_per_patient = first: only the patient's first ICU stay (earliest INTIME of all
     # the patient's ICU stays, as the MIMIC Code Repository's first_icu_stay), kept if it
     # meets every criterion above; a later stay never stands in for an ineligible first one
@@ -995,14 +1036,16 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
                      .fillna(False).all(axis=1).to_numpy(bool)]
     if opts.stays_per_patient == "first":
         first = allst.sort_values("intime", kind="stable").drop_duplicates("subject_id").index
-        crit["stays_per_patient"] = pd.Series(before.isin(first), index=before).reindex(
-            ids_all).astype("boolean")
-        spp_desc = "the patient's first ICU stay (INTIME), if it meets every criterion above"
-    else:
-        crit["stays_per_patient"] = pd.Series(True, index=before).reindex(ids_all).astype(
-            "boolean")
-        spp_desc = "every stay of each patient (stays_per_patient: all)"
+        return (pd.Series(before.isin(first), index=before).reindex(ids_all).astype("boolean"),
+                "the patient's first ICU stay (INTIME), if it meets every criterion above")
+    return (pd.Series(True, index=before).reindex(ids_all).astype("boolean"),
+            "every stay of each patient (stays_per_patient: all)")
 
+
+def _consort(crit: pd.DataFrame, t_max: int, anchor_desc: str, w_desc: str, spp_desc: str
+             ) -> tuple[_Consort, pd.Index]:
+    """The CONSORT chain up to ``stays_per_patient``, in the order of ``STEPS``; the stays
+    left."""
     c = _Consort()
     desc = {
         "all_icu_stays": "ICU stays in ICUSTAYS",
@@ -1021,16 +1064,19 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
         "sample-and-hold; the paper's change)",
         "stays_per_patient": spp_desc,
     }
-    ids = ids_all
+    ids = crit.index
     c.add("all_icu_stays", desc["all_icu_stays"], ids)
     for step in STEPS[1:-1]:
         ids = ids[crit.loc[ids, step].fillna(False).to_numpy(bool)]
         c.add(step, desc[step], ids)
+    return c, ids
 
-    stays = allst.loc[ids]
-    held, raw = held.loc[ids], raw.loc[ids]
-    t0 = t0_all.reindex(ids)
-    offset = offset.reindex(ids)
+
+def _impute(con, allst: pd.DataFrame, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series
+            ) -> _Imputed:
+    """Weight and labs still missing after sample-and-hold: the patient's own earlier weight
+    first, then 1-NN from other patients' same or earlier hours (``held`` is changed)."""
+    ids = stays.index
     # an hour still without a weight takes the patient's own last weight charted before it
     # (this stay beyond the 72 h hold, or an earlier stay) before any other patient's
     own_w = own_earlier_weight(con, allst, held, t0) if len(ids) else pd.Series(dtype=float)
@@ -1057,39 +1103,45 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
         # would let a weight jump between unrelated patients' weights hour by hour)
         wmiss = after_hold_missing["weight"]
         if wmiss.any():
-            w = held["weight"].where(wmiss)
-            first_w = w.groupby(level=0).transform("first")
-            held.loc[wmiss, "weight"] = first_w[wmiss]
-            # the plausibility rule applies to an imputed weight as to a charted one: a
-            # donor's weight whose BMI with the patient's height (charted before the first
-            # imputed hour, by that hour's end) is implausible is not used; the stay then
-            # fails ``imputable``
-            firsts = wmiss[wmiss].reset_index()[["icustay_id", "t"]].drop_duplicates(
-                "icustay_id")
-            end = (t0.reindex(firsts["icustay_id"]).to_numpy()
-                   + (firsts["t"].to_numpy() + 1) * HOUR)
-            kg = first_w.loc[pd.MultiIndex.from_frame(firsts)].to_numpy(float)
-            ok = np.isfinite(kg)
-            bad = np.zeros(len(kg), dtype=bool)
-            bad[ok] = _bmi_implausible(
-                con, stays["subject_id"].reindex(firsts["icustay_id"]).to_numpy("int64")[ok],
-                end[ok], kg[ok])
-            imp_bad = pd.Index(firsts["icustay_id"].to_numpy()[bad])
-            if len(imp_bad):
-                drop = wmiss & held.index.get_level_values(0).isin(imp_bad)
-                held.loc[drop, "weight"] = np.nan
-    done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
-    crit["imputable"] = done.reindex(ids_all).astype("boolean")
-    ids = ids[done.reindex(ids).to_numpy(bool)]
-    c.add("imputable", "weight and every lab of every hour observed, held or imputed from "
-          f"another patient's same or earlier hour (weight imputed in {n_w} stays, "
-          f"{n_w_hours} stay-hours)", ids)
-    stays, held, raw, t0 = stays.loc[ids], held.loc[ids], raw.loc[ids], t0.loc[ids]
-    offset = offset.loc[ids]
-    after_hold_missing = after_hold_missing.loc[ids]
-    # missingness report (before sample-and-hold), on the final cohort
+            imp_bad = _one_weight_per_stay(con, stays, held, t0, wmiss)
+    return _Imputed(held=held, missing_after_hold=after_hold_missing, n_own_weight=n_own_w,
+                    weight_implausible=imp_bad, n_weight_stays=n_w, n_weight_hours=n_w_hours)
+
+
+def _one_weight_per_stay(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series,
+                         wmiss: pd.Series) -> pd.Index:
+    """Every imputed weight hour (``wmiss``) of a stay takes the stay's first imputed
+    weight; one implausible with the patient's height is dropped (``held`` is changed).
+    Returns the stays whose imputed weight was dropped."""
+    w = held["weight"].where(wmiss)
+    first_w = w.groupby(level=0).transform("first")
+    held.loc[wmiss, "weight"] = first_w[wmiss]
+    # the plausibility rule applies to an imputed weight as to a charted one: a
+    # donor's weight whose BMI with the patient's height (charted before the first
+    # imputed hour, by that hour's end) is implausible is not used; the stay then
+    # fails ``imputable``
+    firsts = wmiss[wmiss].reset_index()[["icustay_id", "t"]].drop_duplicates(
+        "icustay_id")
+    end = (t0.reindex(firsts["icustay_id"]).to_numpy()
+           + (firsts["t"].to_numpy() + 1) * HOUR)
+    kg = first_w.loc[pd.MultiIndex.from_frame(firsts)].to_numpy(float)
+    ok = np.isfinite(kg)
+    bad = np.zeros(len(kg), dtype=bool)
+    bad[ok] = _bmi_implausible(
+        con, stays["subject_id"].reindex(firsts["icustay_id"]).to_numpy("int64")[ok],
+        end[ok], kg[ok])
+    imp_bad = pd.Index(firsts["icustay_id"].to_numpy()[bad])
+    if len(imp_bad):
+        drop = wmiss & held.index.get_level_values(0).isin(imp_bad)
+        held.loc[drop, "weight"] = np.nan
+    return imp_bad
+
+
+def _missingness(raw: pd.DataFrame, after_hold_missing: pd.DataFrame, n: int, t_max: int
+                 ) -> pd.DataFrame:
+    """Missing values before sample-and-hold and imputed cells, per feature and hour, on the
+    final cohort of ``n`` stays."""
     miss_rows = []
-    n = len(ids)
     for f in schema.FEATURES:
         for t in range(t_max + 1):
             if f in ("age", "sex"):
@@ -1101,8 +1153,13 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
                     n and f in after_hold_missing) else 0
             miss_rows.append({"feature": f, "t": t, "n_missing_raw": nm,
                               "share_missing_raw": nm / n if n else np.nan, "n_imputed": ni})
-    missingness = pd.DataFrame(miss_rows)
+    return pd.DataFrame(miss_rows)
 
+
+def _trajectories(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series, t_max: int,
+                  opts: Mimic3Options, ev_counts: dict, source: str) -> pd.DataFrame:
+    """The cohort's trajectory rows: features, age, sex, the hour's doses, the patient."""
+    ids = stays.index
     traj = held.reset_index()
     traj["age"] = stays["age"].reindex(traj["icustay_id"]).to_numpy()
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
@@ -1123,20 +1180,61 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     traj[schema.SUBJECT_ID] = stays["subject_id"].reindex(traj[schema.STAY_ID]).to_numpy()
     traj = traj[[*schema.TRAJECTORY_COLUMNS, schema.SUBJECT_ID]]
     if len(traj):
-        traj = schema.validate_trajectories(traj, source=f"{layout.kind} extraction of {folder}",
-                                            t_max=t_max)
+        traj = schema.validate_trajectories(traj, source=source, t_max=t_max)
+    return traj
+
+
+def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
+             opts: Mimic3Options, layout: Layout = MIMIC3) -> Mimic3Cohort:
+    """The cohort, step by step: every criterion for every stay, the CONSORT chain in the
+    order of ``STEPS``, imputation, trajectories with their doses, the audit."""
+    allst = _stays(con, layout)
+    ids_all = allst.index
+    crit = pd.DataFrame(index=ids_all)  # True = met, False = failed, NA = not evaluated
+    evidence: dict = {}
+    ev_counts: dict = {}
+    wd_inputs: dict = {}
+    inf, sofa = _clinical_criteria(con, allst, crit, opts, evidence, ev_counts, wd_inputs)
+    hours = _hours(con, allst, crit, t_max, anchor, window_h, opts, ev_counts)
+    held, full = hours.held, hours.full
+    wd, w_desc = _weight_documented(con, allst, held, t_max, opts)
+    crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
+    vit = held[list(hourly.VITALS)].notna().all(axis=1).groupby(level=0).all()
+    crit["vitals_complete"] = vit.reindex(full).reindex(ids_all).astype("boolean")
+    spp, spp_desc = _stays_per_patient(allst, crit, opts)
+    crit["stays_per_patient"] = spp
+    c, ids = _consort(crit, t_max, hours.anchor_desc, w_desc, spp_desc)
+
+    stays = allst.loc[ids]
+    t0 = hours.t0.reindex(ids)
+    imputed = _impute(con, allst, stays, held.loc[ids], t0)
+    held = imputed.held
+    done = held[list(schema.FEATURES[2:])].notna().all(axis=1).groupby(level=0).all()
+    crit["imputable"] = done.reindex(ids_all).astype("boolean")
+    ids = ids[done.reindex(ids).to_numpy(bool)]
+    c.add("imputable", "weight and every lab of every hour observed, held or imputed from "
+          f"another patient's same or earlier hour (weight imputed in {imputed.n_weight_stays} "
+          f"stays, {imputed.n_weight_hours} stay-hours)", ids)
+    stays, held, t0 = stays.loc[ids], held.loc[ids], t0.loc[ids]
+    raw = hours.raw.loc[ids]
+    offset = hours.offset.reindex(ids)
+    after_hold_missing = imputed.missing_after_hold.loc[ids]
+    missingness = _missingness(raw, after_hold_missing, len(ids), t_max)
+    traj = _trajectories(con, stays, held, t0, t_max, opts, ev_counts,
+                         f"{layout.kind} extraction of {folder}")
     anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
                             "anchor_h": offset.to_numpy("int64")})
-    imputed = after_hold_missing.reset_index().rename(columns={"icustay_id": schema.STAY_ID})
-    audit = _audit(allst, inf, sofa, crit, t0_all, in_cohort=ids, imputed=after_hold_missing,
+    imputed_cells = after_hold_missing.reset_index().rename(
+        columns={"icustay_id": schema.STAY_ID})
+    audit = _audit(allst, inf, sofa, crit, hours.t0, in_cohort=ids, imputed=after_hold_missing,
                    evidence=evidence, withdrawal=wd_inputs.get("frame"),
-                   n_implausible=n_implausible, n_own_weight=n_own_w,
-                   imputed_weight_implausible=imp_bad,
+                   n_implausible=hours.n_implausible, n_own_weight=imputed.n_own_weight,
+                   imputed_weight_implausible=imputed.weight_implausible,
                    counts={**ev_counts, "screens": evidence.get("screens"),
                            "culture_by_time": evidence.get("culture_by_time")})
     return Mimic3Cohort(trajectories=traj.reset_index(drop=True), consort=c.frame(),
-                        missingness=missingness, anchors=anchors, imputed=imputed,
+                        missingness=missingness, anchors=anchors, imputed=imputed_cells,
                         stays=audit, options=opts.as_dict())
 
 

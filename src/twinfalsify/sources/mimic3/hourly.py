@@ -94,7 +94,7 @@ def block_means(ev: pd.DataFrame, intime: pd.Series, features: tuple[str, ...], 
     return wide.reindex(index=idx, columns=list(features))
 
 
-def _within_limits(feature: str, v: pd.Series) -> pd.Series:
+def within_limits(feature: str, v: pd.Series) -> pd.Series:
     """True where ``v`` passes every outlier_limits.csv row of ``feature``."""
     lim = data_table("outlier_limits.csv")
     ok = pd.Series(True, index=v.index)
@@ -170,7 +170,7 @@ def complete_bp(ev: pd.DataFrame) -> pd.DataFrame:
             ("MeanBP", m.isna() & s.notna() & d.notna(), (s + 2 * d) / 3, s > d),
             ("DiaBP", d.isna() & s.notna() & m.notna(), (3 * m - s) / 2, s > m),
             ("SysBP", s.isna() & m.notna() & d.notna(), 3 * m - 2 * d, m > d)):
-        ok = need & ordered & _within_limits(feat, v)
+        ok = need & ordered & within_limits(feat, v)
         if ok.any():
             new.append(pd.DataFrame({"icustay_id": w.index.get_level_values(0)[ok],
                                      "time": w.index.get_level_values(1)[ok],

@@ -134,7 +134,8 @@ def find_table(folder: Path, table: str, layout: Layout = MIMIC3) -> Path:
     )
 
 
-def _reader(path: Path) -> str:
+def table_reader(path: Path) -> str:
+    """The DuckDB table function reading ``path`` (Parquet, or CSV with every column text)."""
     lit = "'" + str(path).replace("'", "''") + "'"
     if path.name.endswith(".parquet"):
         return f"read_parquet({lit})"
@@ -186,7 +187,7 @@ def _open_view(con: duckdb.DuckDBPyConnection, folder: Path, table: str, layout:
         return
     path = find_table(folder, table, layout)
     try:
-        con.execute(f'CREATE VIEW "_file_{table}" AS SELECT * FROM {_reader(path)}')
+        con.execute(f'CREATE VIEW "_file_{table}" AS SELECT * FROM {table_reader(path)}')
         cols = {c.upper() for c in
                 con.execute(f'SELECT * FROM "_file_{table}" LIMIT 0').df().columns}
         empty = con.execute(f'SELECT 1 FROM "_file_{table}" LIMIT 1').fetchone() is None
@@ -309,7 +310,7 @@ def diagnose(folder: Path, tables: tuple[str, ...], exc: Exception,
         path = find_table(folder, table, layout)
         con = duckdb.connect(database=":memory:")
         try:
-            con.execute(f"SELECT count(*) FROM {_reader(path)}").fetchone()
+            con.execute(f"SELECT count(*) FROM {table_reader(path)}").fetchone()
         except duckdb.Error as exc2:
             return _unreadable(path, exc2, layout)
         finally:

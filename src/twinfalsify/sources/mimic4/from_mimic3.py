@@ -35,7 +35,7 @@ from pathlib import Path
 import duckdb
 
 from twinfalsify.schema import ContractError
-from twinfalsify.sources.mimic3.tables import _reader, find_table, resolve_mimic3_dir
+from twinfalsify.sources.mimic3.tables import find_table, resolve_mimic3_dir, table_reader
 
 # MIMIC-III table -> (MIMIC-IV path, MIMIC-IV column <- MIMIC-III expression (lower-case
 # names: DuckDB matches them without case), rows kept: "stay" | "subject" | "all")
@@ -108,7 +108,7 @@ def write_pair(src: Path, out: Path, dbsource: str = "metavision") -> dict[str, 
     try:
         for table in TABLES:
             path = find_table(src, table)
-            con.execute(f'CREATE VIEW "src_{table}" AS SELECT * FROM {_reader(path)}')
+            con.execute(f'CREATE VIEW "src_{table}" AS SELECT * FROM {table_reader(path)}')
         con.execute(f"""CREATE TABLE kept_stays AS SELECT DISTINCT
             TRY_CAST(icustay_id AS BIGINT) AS id FROM "src_ICUSTAYS"
             WHERE lower(dbsource) = '{dbsource}'""")

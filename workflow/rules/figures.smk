@@ -1,26 +1,4 @@
-rule rejections_table:
-    input:
-        f"{twin_dir()}/results.parquet",
-    output:
-        report(
-            f"{twin_dir()}/tables/rejections.csv",
-            caption="../report/rejections.rst",
-            category="Rejections",
-            subcategory="{twin}",
-        ),
-    log:
-        f"{LOGS}/twins/{{twin}}/rejections_table.log",
-    benchmark:
-        f"{R}/benchmarks/twins/{{twin}}/rejections_table.tsv"
-    conda:
-        "../../envs/twinfalsify.yaml"
-    resources:
-        mem_mb=2000,
-        runtime=5,
-    params:
-        code=code("rejections_table"),
-    script:
-        "../../scripts/rejections_table.py"
+# The figures of a study: per twin, and of the design (confounding).
 
 
 rule figure_pvalues:
@@ -47,74 +25,6 @@ rule figure_pvalues:
         code=code("figure_pvalues_methods"),
     script:
         "../../scripts/figure_pvalues_methods.py"
-
-
-report: "../report/workflow.rst"
-
-
-# Everything summary.load_study_twin needs for one twin (wildcard {twin}).
-STUDY_TWIN_INPUTS = {
-    "d0": f"{R}/d0.parquet",
-    "d": f"{R}/d.parquet",
-    "actions": f"{R}/design/actions.json",
-    "bins": f"{R}/design/bins.json",
-    "hypotheses": f"{R}/design/hypotheses.parquet",
-    "counts": f"{R}/observational/counts.parquet",
-    "follow": f"{R}/observational/follow.parquet",
-    "plan": f"{R}/twin_plan.json",
-    "runs": f"{twin_dir()}/runs.parquet",
-    "results": f"{twin_dir()}/results.parquet",
-}
-
-
-rule table_rejections_tex:
-    input:
-        f"{twin_dir()}/tables/rejections.csv",
-    output:
-        report(
-            f"{twin_dir()}/tables/rejections.tex",
-            caption="../report/rejections_tex.rst",
-            category="Rejections",
-            subcategory="{twin}",
-        ),
-    log:
-        f"{LOGS}/twins/{{twin}}/table_rejections_tex.log",
-    benchmark:
-        f"{R}/benchmarks/twins/{{twin}}/table_rejections_tex.tsv"
-    conda:
-        "../../envs/twinfalsify.yaml"
-    resources:
-        mem_mb=1000,
-        runtime=5,
-    params:
-        code=code("table_rejections_tex"),
-    script:
-        "../../scripts/table_rejections_tex.py"
-
-
-rule table_action_space:
-    input:
-        f"{R}/tables/action_space.csv",
-    output:
-        csv=report(
-            f"{R}/tables/action_space_grid.csv",
-            caption="../report/action_space_grid.rst",
-            category="Design",
-        ),
-        tex=f"{R}/tables/action_space.tex",
-    log:
-        f"{LOGS}/table_action_space.log",
-    benchmark:
-        f"{R}/benchmarks/table_action_space.tsv"
-    conda:
-        "../../envs/twinfalsify.yaml"
-    resources:
-        mem_mb=1000,
-        runtime=5,
-    params:
-        code=code("table_action_space"),
-    script:
-        "../../scripts/table_action_space.py"
 
 
 rule figure_longitudinal:
@@ -145,34 +55,6 @@ rule figure_longitudinal:
         code=code("figure_longitudinal"),
     script:
         "../../scripts/figure_longitudinal.py"
-
-
-rule explain_rejections:
-    input:
-        **STUDY_TWIN_INPUTS,
-    output:
-        report(
-            f"{twin_dir()}/explained.html",
-            caption="../report/explained.rst",
-            category="Rejections explained",
-            subcategory="{twin}",
-        ),
-    log:
-        f"{LOGS}/twins/{{twin}}/explain_rejections.log",
-    benchmark:
-        f"{R}/benchmarks/twins/{{twin}}/explain_rejections.tsv"
-    conda:
-        "../../envs/twinfalsify.yaml"
-    resources:
-        mem_mb=4000,
-        runtime=10,
-    params:
-        figures=canon(config.get("figures", {})),
-        testing=canon(config["testing"]),
-        quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
-        code=code("explain_rejections"),
-    script:
-        "../../scripts/explain_rejections.py"
 
 
 rule figure_histograms:
@@ -312,40 +194,3 @@ rule figure_confounding:
         code=code("figure_confounding"),
     script:
         "../../scripts/figure_confounding.py"
-
-
-rule summary:
-    input:
-        d0=f"{R}/d0.parquet",
-        d=f"{R}/d.parquet",
-        hypotheses=f"{R}/design/hypotheses.parquet",
-        actions=f"{R}/design/actions.json",
-        bins=f"{R}/design/bins.json",
-        counts=f"{R}/observational/counts.parquet",
-        follow=f"{R}/observational/follow.parquet",
-        plan=f"{R}/twin_plan.json",
-        runs=[f"{twin_dir(t)}/runs.parquet" for t in TWINS],
-        results=[f"{twin_dir(t)}/results.parquet" for t in TWINS],
-    output:
-        md=f"{R}/summary.md",
-        html=report(
-            f"{R}/summary.html",
-            caption="../report/summary.rst",
-            category="Summary",
-        ),
-    log:
-        f"{LOGS}/summary.log",
-    benchmark:
-        f"{R}/benchmarks/summary.tsv"
-    conda:
-        "../../envs/twinfalsify.yaml"
-    resources:
-        mem_mb=4000,
-        runtime=5,
-    params:
-        study=STUDY,
-        twins=TWINS,
-        testing=canon(config["testing"]),
-        code=code("summary"),
-    script:
-        "../../scripts/summary.py"
