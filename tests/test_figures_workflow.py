@@ -54,8 +54,9 @@ def test_sensitivity_rule_logs_its_progress_and_is_benchmarked(study):
     for twin in cfg["twins"]:
         lines = (r / "logs" / "twins" / twin / "figure_sensitivity.log").read_text().splitlines()
         steps = [ln for ln in lines if "Delta = " in ln]
-        kinds = {ln.split(": Delta")[0].split()[-1] for ln in steps}
-        assert len(steps) == len(deltas) * len(kinds) and kinds, lines[-5:]
+        methods = {ln.split(": Delta")[0].split()[-1] for ln in steps}
+        assert methods == set(cfg["testing"]["methods"]), lines[-5:]
+        assert len(steps) == len(deltas) * len(methods), lines[-5:]
         assert any("sensitivity sweep done in" in ln for ln in lines)
         bench = r / "benchmarks" / "twins" / twin / "figure_sensitivity.tsv"
         assert bench.is_file() and bench.read_text().startswith("s\t")

@@ -10,6 +10,7 @@ runs at their places (``inference.failures``), the same methods, level and corre
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,10 +94,16 @@ def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: li
     the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome."""
     alpha = float(testing["alpha"])
     methods = make_methods(testing["methods"], int(seed), alpha=alpha)
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress(f"sensitivity sweep: {len(deltas)} Delta values x {len(methods)} methods "
+                 f"({', '.join(methods)}), corrected within each kind")
     table = sensitivity_sweep(
         tt.samples, deltas, methods, alpha, testing["correction"],
         group=tt.hyps["outcome"].to_numpy(), n_failed=tt.n_failed,
         failed_runs=testing["failed_runs"], family=tt.hyps["kind"].to_numpy(),
         progress=progress,
     )  # fmt: skip
+    if progress is not None:
+        progress(f"sensitivity sweep done in {time.perf_counter() - t0:.1f} s")
     return table.rename(columns={"family": "kind"})

@@ -26,6 +26,7 @@ Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -52,15 +53,19 @@ def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
 
 def sweep_pvalues(
     method: Method, samples: HypothesisSamples, n_failed: np.ndarray, deltas: Sequence[float],
-    failed_runs: str = "conservative",
+    failed_runs: str = "conservative", progress: Callable[[int, float], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening, each
-    the main analysis' own call on the widened samples (Delta = 0: the main analysis)."""
+    the main analysis' own call on the widened samples (Delta = 0: the main analysis).
+    ``progress(j, seconds)`` is called after widening j."""
     f = np.asarray(n_failed, np.int64)
     out = []
     with order_cache():
-        for d in deltas:
+        for j, d in enumerate(deltas):
+            t0 = time.perf_counter()
             out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs))
+            if progress is not None:
+                progress(j, time.perf_counter() - t0)
     return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
 
@@ -99,7 +104,12 @@ def sensitivity_sweep(
     sizes = cells.value_counts(sort=False)
     rows = []
     for name, fn in methods.items():
-        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs)
+        def step(j: int, seconds: float, name: str = name) -> None:
+            if progress is not None:
+                progress(f"{name}: Delta = {deltas[j]:g} ({j + 1}/{len(deltas)}) in "
+                         f"{seconds:.1f} s")
+
+        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, step)
         for j, delta in enumerate(deltas):
             rej = correct_within(np.concatenate([p_lo[j], p_up[j]]), np.concatenate([fam, fam]),
                                  alpha, correction)
@@ -107,6 +117,4 @@ def sensitivity_sweep(
             counts = pd.Series(per).groupby([fam, labels]).sum()
             rows += [(float(delta), name, fa, g, int(2 * sizes[(fa, g)]), int(counts[(fa, g)]))
                      for fa, g in keys]
-        if progress is not None:
-            progress(f"{name}: {len(deltas)} widenings done")
     return pd.DataFrame(rows, columns=COLUMNS)
