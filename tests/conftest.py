@@ -1,66 +1,23 @@
-"""Shared fixtures: small synthetic studies built in-process (fast, seeded)."""
+"""The fixtures several test files use (studies built once per run, the check for leftover
+child processes), and the order and slow marks of the whole suite. Plain helpers live in
+``tests/helpers/``."""
 
 from __future__ import annotations
 
 import os
 import shutil
 import sys
-from collections.abc import Callable
+import time
 from pathlib import Path
 
 import pytest
-from filelock import FileLock
+from helpers.paths import ROOT, SRC, TESTS
+from helpers.workflow import built_once, run_snakemake
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(SRC))
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 pytest_plugins = ["cpu_report"]
-
-
-def built_once(tmp_path_factory: pytest.TempPathFactory, name: str,
-               build: Callable[[Path], None]) -> Path:
-    """A folder ``build`` fills once per test run, however many pytest-xdist workers ask.
-
-    The pattern of pytest-xdist's docs for session fixtures that must run once: the folder
-    lives in the temporary directory all workers of a run share, and the first worker to ask
-    builds it under a file lock while the others wait, then read it. A failed build is
-    recorded, so the other workers fail with its message instead of building it again.
-    Readers must not change the folder: copy it (``copy_study``) to change it.
-    """
-    base = tmp_path_factory.getbasetemp()
-    shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "built-once"
-    shared.mkdir(exist_ok=True)
-    folder, done, failed = shared / name, shared / f"{name}.done", shared / f"{name}.failed"
-    with FileLock(str(shared / f"{name}.lock")):
-        if failed.exists():
-            raise AssertionError(f"building {name} failed (in another worker):\n"
-                                 + failed.read_text())
-        if not done.exists():
-            shutil.rmtree(folder, ignore_errors=True)
-            folder.mkdir()
-            try:
-                build(folder)
-            except BaseException as exc:
-                failed.write_text(f"{type(exc).__name__}: {exc}"[-5000:])
-                raise
-            done.touch()
-    return folder
-
-
-def copy_study(folder: Path, dest: Path) -> Path:
-    """A private copy of a built study folder (file times kept, so Snakemake sees it
-    complete), for a test that reruns or edits it."""
-    shutil.copytree(folder, dest, symlinks=True)
-    return dest
-
-
-def shared_dir() -> Path | None:
-    """The shared data folder: ``$TWINFALSIFY_SHARED`` if set, else ``../shared`` next to the
-    checkout (the CI layout); None when absent (the tests that need it skip)."""
-    env = os.environ.get("TWINFALSIFY_SHARED")
-    cand = Path(env) if env else ROOT.parent / "shared"
-    return cand if cand.is_dir() else None
 
 
 @pytest.fixture(scope="session")
@@ -68,42 +25,35 @@ def root() -> Path:
     return ROOT
 
 
-def copy_repo(repo: Path) -> Path:
-    """A copy of what a study needs from the checkout (Snakefile, workflow, scripts, src,
-    config, envs) in ``repo``, so a test may edit code without touching the checkout."""
-    import shutil
-
-    repo.mkdir(parents=True)
-    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
-        src, dst = ROOT / part, repo / part
-        if src.is_dir():
-            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(src, dst)
-    return repo
-
-
-def run_snakemake(workdir: Path, config: Path, *args: str, timeout: int = 900):
-    """``snakemake -s <repo>/Snakefile --directory workdir --configfile config *args``."""
-    import subprocess
-
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--directory",
-           str(workdir), "--configfile", str(config), *args]  # fmt: skip
-    env = {**os.environ, "MPLBACKEND": "Agg"}
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+def _children() -> list[tuple[int, str]]:
+    """(pid, state) of every process whose parent is this test process (from /proc)."""
+    me, out = os.getpid(), []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[1]) == me:
+            out.append((int(entry.name), fields[0]))
+    return out
 
 
-def mimic_study_config(study: str, kind: str, path: str | None) -> dict:
-    """A study config reading a small MIMIC folder (``kind`` mimic3 or mimic4; ``path`` None:
-    the environment variable) with one fitted twin and Hoeffding: enough for the
-    extraction rule and the small rules after it."""
-    return {"study": study, "seed": 1,
-            "source": {"kind": kind, kind: {"path": path, "threads": 1}},
-            "split": {"d0_fraction": 0.4}, "design": {"min_support": 1},
-            "twin_runs": {"runs_per_sequence": None, "n_shards": 1},
-            "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
-            "testing": {"alpha": 0.05, "correction": "holm",
-                        "methods": {"hoeffding": {"factor": 2}}}}
+@pytest.fixture
+def no_leftover_processes():
+    """Fails the test when a child process it started is still there 3 s after it ended.
+    A file checks every test with ``pytestmark = pytest.mark.usefixtures(...)``."""
+    before = {pid for pid, _ in _children()}
+    yield
+    deadline = time.monotonic() + 3.0
+    while True:
+        left = [(p, s) for p, s in _children() if p not in before]
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    assert not left, f"child processes left behind (pid, state): {left}"
 
 
 @pytest.fixture(scope="session")
@@ -197,7 +147,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.slow)
 
     def rank(item: pytest.Item) -> int:
-        name = item.path.name
+        name = Path(os.path.relpath(item.path, TESTS)).as_posix()
         return LONG_FIRST.index(name) if name in LONG_FIRST else len(LONG_FIRST)
 
     items.sort(key=rank)  # stable: the order within a file is kept

@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
-from study_helpers import build_study
-from test_twin_runner import ENV
+from helpers.paths import ENV
+from helpers.studies import build_study
 
 from twinfalsify import bounds
 from twinfalsify.bounds import twin_runs_indexed

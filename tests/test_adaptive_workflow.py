@@ -8,8 +8,8 @@ import re
 import pandas as pd
 import pytest
 import yaml
-from conftest import ROOT
-from conftest import run_snakemake as snakemake
+from helpers.paths import ROOT
+from helpers.workflow import run_snakemake as snakemake
 
 pytestmark = pytest.mark.slow
 

@@ -14,31 +14,29 @@ with status ``error`` and a message: the runner never drops or invents a run.
 from __future__ import annotations
 
 import copy
-import os
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 from fakes import FAULTY_TWIN
+from helpers.paths import BAD_INPUTS, ENV, ROOT
+from helpers.twins import zero_dose_inputs
+from helpers.workflow import BASE_CONFIG
 from slurm.runs import run
 
 from twinfalsify import design
 from twinfalsify.runs.runner import simulate_via_protocol
-from twinfalsify.schema import FEATURES, STAY_ID, TIME, ContractError, validate_trajectories
+from twinfalsify.schema import STAY_ID, TIME, ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import generate
 from twinfalsify.split import split_stays
 from twinfalsify.studyconfig import study_config_error
 
-ROOT = Path(__file__).resolve().parents[1]
-CORPUS = Path(__file__).with_name("bad_inputs")
+CORPUS = BAD_INPUTS
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
-BASE_CONFIG = ROOT / "config" / "test.yaml"
 CONFIG_CASES = yaml.safe_load((CORPUS / "configs.yaml").read_text())
 FAULTY = FAULTY_TWIN
-ENV = {"PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 
 
 def edited_config(edit: dict) -> dict:
@@ -206,16 +204,9 @@ def test_d0_too_small_to_form_any_hypothesis(traj):
 # ---- twins --------------------------------------------------------------------------------
 
 
-def _inputs(n: int = 3, t: int = 2):
-    rng = np.random.default_rng(0)
-    x0 = pd.DataFrame({f: rng.uniform(50, 100, n).round(3) for f in FEATURES})
-    doses = np.zeros((n, t, 2))
-    return x0, doses, np.arange(10, 10 + n, dtype=np.uint64)
-
-
 def test_twin_executable_that_does_not_exist():
     with pytest.raises(FileNotFoundError, match="twin command not found on PATH: 'no-such-twin'"):
-        simulate_via_protocol(["no-such-twin"], *_inputs(), progress=False)
+        simulate_via_protocol(["no-such-twin"], *zero_dose_inputs(), progress=False)
 
 
 @pytest.mark.parametrize(
@@ -228,7 +219,8 @@ def test_twin_executable_that_does_not_exist():
 )
 def test_unusable_twin_is_refused_before_any_run(mode, fragment):
     with pytest.raises(ContractError) as err:
-        simulate_via_protocol([*FAULTY, f"--mode={mode}"], *_inputs(), env=ENV, progress=False)
+        simulate_via_protocol([*FAULTY, f"--mode={mode}"], *zero_dose_inputs(), env=ENV,
+                              progress=False)
     assert fragment in str(err.value) and "faulty_twin.py" in str(err.value)
 
 
@@ -238,7 +230,7 @@ def test_unusable_twin_is_refused_before_any_run(mode, fragment):
 )
 def test_bad_answers_are_recorded_per_run_not_dropped(mode, fragment):
     res = simulate_via_protocol(
-        [*FAULTY, f"--mode={mode}:11"], *_inputs(), env=ENV, retries=0, progress=False
+        [*FAULTY, f"--mode={mode}:11"], *zero_dose_inputs(), env=ENV, retries=0, progress=False
     )
     status = list(res.status)
     assert status == ["ok", "error", "ok"], status

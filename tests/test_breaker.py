@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
-from test_bad_inputs import ENV
-from test_failfast import _study_bits
+from helpers.paths import ENV
+from helpers.twins import study_bits
 
 from twinfalsify import summary
 from twinfalsify.runs import runner
@@ -117,7 +117,7 @@ def test_implausible_trips_the_breaker_and_shows_in_the_progress_line(monkeypatc
 
 
 def test_shard_with_implausible_runs_warns_once():
-    x0, plan, actions = _study_bits()
+    x0, plan, actions = study_bits()
     seeds = plan.run_seeds()
     n_bad = int((seeds % 2 == 0).sum())
     twin = ProtocolTwin("faulty", [*FAULTY_TWIN, "--mode=implausible:%2=0"], env=ENV,

@@ -14,7 +14,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from conftest import shared_dir
+from helpers.paths import shared_dir
 
 from twinfalsify.schema import ContractError
 from twinfalsify.sources import checksums

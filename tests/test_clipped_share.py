@@ -8,7 +8,7 @@ and the summary must warn.
 from __future__ import annotations
 
 import numpy as np
-from study_helpers import build_study, twin_samples
+from helpers.studies import build_study, twin_samples
 
 from twinfalsify import summary
 from twinfalsify.runs.registry import make_twin

@@ -15,25 +15,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import built_once
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def require_mkdocs() -> None:
-    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("material") is None:
-        pytest.skip("mkdocs / mkdocs-material not installed (pip install -e '.[dev]')")
-
-
-def build_site(dest: Path) -> None:
-    """``mkdocs build --strict`` of the checkout into ``dest`` (raises with mkdocs' output on
-    a warning). Built once per test run (``built_once``): ``tests/test_docs_maths.py`` reads
-    the same site in a browser."""
-    out = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(dest)],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
-        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
-    assert out.returncode == 0, out.stderr[-4000:]
+from helpers.docs import build_site, require_mkdocs
+from helpers.paths import ROOT
+from helpers.workflow import built_once
 
 
 def test_site_builds_in_strict_mode(tmp_path_factory):

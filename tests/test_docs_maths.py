@@ -24,10 +24,10 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
-from conftest import built_once
-from test_docs import build_site, require_mkdocs
+from helpers.docs import build_site, require_mkdocs
+from helpers.paths import ROOT
+from helpers.workflow import built_once
 
-ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 
 # pages whose formulas the test reads in the browser, with the fewest formulas each must

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from study_helpers import build_study, twin_samples
+from helpers.studies import build_study, twin_samples
 
 from twinfalsify.design import StateBins
 from twinfalsify.explain import explain, subgroup_in_words

@@ -8,8 +8,8 @@ from functools import partial
 import numpy as np
 import pandas as pd
 import pytest
+from helpers.studies import OneCellBins
 from scipy.stats import beta as beta_dist
-from study_helpers import OneCellBins
 
 from twinfalsify.bounds import TwinNodes, twin_runs
 from twinfalsify.design import WHOLE_SPACE
@@ -204,7 +204,7 @@ def test_study_failures_are_placed_counted_and_never_below_drop():
     some hypothesis, and equal wherever nothing failed."""
     import io
 
-    from study_helpers import build_study
+    from helpers.studies import build_study
 
     from twinfalsify import bounds
     from twinfalsify.runs import plan as tp

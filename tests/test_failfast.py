@@ -20,11 +20,12 @@ import numpy as np
 import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
-from test_bad_inputs import ENV, ROOT, _inputs
+from helpers.paths import ENV, ROOT
+from helpers.twins import study_bits, zero_dose_inputs
 
 from twinfalsify import provenance
 from twinfalsify.io import load_yaml_strict
-from twinfalsify.runs.plan import TwinPlan, run_shard
+from twinfalsify.runs.plan import run_shard
 from twinfalsify.runs.runner import simulate_via_protocol
 from twinfalsify.schema import FEATURE_BY_NAME, FEATURES, ContractError, mark_implausible
 from twinfalsify.studyconfig import N_ACTIONS, shard_count
@@ -100,27 +101,11 @@ def test_breaker_off_with_zero_records_every_failure():
 @pytest.mark.parametrize("key", ["fail_fast_runs", "max_restarts"])
 def test_breaker_options_are_checked(key):
     with pytest.raises(ContractError, match=f"{key} must be an integer >= 0, got -1"):
-        simulate_via_protocol([*FAULTY_TWIN], *_inputs(), env=ENV, progress=False,
+        simulate_via_protocol([*FAULTY_TWIN], *zero_dose_inputs(), env=ENV, progress=False,
                               **{key: -1})
 
 
 # ---- implausible values -------------------------------------------------------------------
-
-
-def _study_bits(n: int = 6):
-    """X_0 from the synthetic world (inside the contract), a plan with one 3-hour leaf."""
-    from twinfalsify.design import ActionBins
-    from twinfalsify.sources.synthetic import generate
-
-    d = generate({"n_stays": 40}, seed=3)
-    x0 = d[d.t == 0].iloc[:n][["stay_id", *FEATURES]].reset_index(drop=True)
-    ids = [int(s) for s in x0.stay_id]
-    # seed 1: run seeds (by plan position) of both parities, which the faulty twin needs
-    plan = TwinPlan(x0_stay_ids=ids, seed=1, shards=[["1-2-3"]], nodes=["1", "1-2", "1-2-3"])
-    actions = ActionBins(iv_edges=(1.0, 2.0, 3.0), vaso_edges=(0.1, 0.2, 0.3),
-                         iv_medians=(0.0, 1.0, 2.0, 3.0, 4.0),
-                         vaso_medians=(0.0, 0.1, 0.2, 0.3, 0.4))
-    return x0, plan, actions
 
 
 @pytest.mark.parametrize(("mode", "shown"), [("implausible", "1e+300"), ("negative", "-500")])
@@ -129,7 +114,7 @@ def test_protocol_twin_value_outside_contract_is_implausible(mode, shown):
     stored as implausible from node 1-2 on; node 1 (hour 1) and the other runs stay ok."""
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
-    x0, plan, actions = _study_bits()
+    x0, plan, actions = study_bits()
     seeds = plan.run_seeds()
     twin = ProtocolTwin("faulty", [*FAULTY_TWIN, f"--mode={mode}:%2=0"], env=ENV,
                         progress=False, retries=0)
@@ -185,7 +170,7 @@ class _WildTwin:
 
 
 def test_in_process_twin_value_outside_contract_is_implausible():
-    x0, plan, actions = _study_bits(3)
+    x0, plan, actions = study_bits(3)
     runs = run_shard(_WildTwin(), plan, 0, x0, actions, log=open("/dev/null", "w"))
     second = plan.x0_stay_ids[1]
     bad = runs[runs.init_stay_id == second]
@@ -367,7 +352,7 @@ def test_twin_context_stays_valid_when_the_study_folder_moves(tmp_path):
     new = tmp_path / "elsewhere" / "s"
     shutil.move(old, new)
     twin = make_twin("f", {"kind": "fitted"}, new / "twin_context.json")
-    x0, doses, seeds = _study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
+    x0, doses, seeds = study_bits(3)[0], np.zeros((3, 2, 2)), np.arange(3, dtype=np.uint64)
     assert np.isfinite(twin.simulate(x0, doses, seeds).features).all()
 
 
@@ -513,7 +498,7 @@ def _in_rule(tmp_path, body):
 def test_implausible_shard_warning_reaches_the_shard_log(tmp_path):
     from twinfalsify.runs.protocol_twin import ProtocolTwin
 
-    x0, plan, actions = _study_bits()
+    x0, plan, actions = study_bits()
     twin = ProtocolTwin("faulty", [*FAULTY_TWIN, "--mode=implausible:%2=0"], env=ENV,
                         progress=False, retries=0)
     lines = _in_rule(tmp_path, lambda: run_shard(twin, plan, 0, x0, actions))

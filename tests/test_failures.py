@@ -145,7 +145,7 @@ def test_study_rejection_under_drop_disappears_under_conservative():
 
 def test_failed_run_counted_only_if_it_could_have_entered():
     """n_failed: a run failing at hour 2 counts unless its hour 1 already left B_1."""
-    from study_helpers import OneCellBins
+    from helpers.studies import OneCellBins
 
     from twinfalsify.bounds import TwinNodes, twin_runs
     from twinfalsify.design import WHOLE_SPACE

@@ -19,7 +19,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pandas as pd
 import pytest
-from study_helpers import build_study
+from helpers.studies import build_study
 
 from twinfalsify import figures, summary, tables
 from twinfalsify.design import WHOLE_SPACE, action_codes, state_codes

@@ -9,7 +9,7 @@ import matplotlib.image as mpimg
 import pandas as pd
 import pytest
 import yaml
-from conftest import run_snakemake
+from helpers.workflow import run_snakemake
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow

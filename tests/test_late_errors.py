@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import pytest
 import yaml
+from helpers.workflow import BASE_CONFIG
 from slurm.runs import run
-from test_bad_inputs import BASE_CONFIG
 
 from twinfalsify.figure_ids import figure_ids_error
 from twinfalsify.runs.plan import shard_runtime_minutes

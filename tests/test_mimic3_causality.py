@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import shared_dir
+from helpers.paths import shared_dir
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3, itemmap

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from conftest import shared_dir
+from helpers.paths import shared_dir
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3

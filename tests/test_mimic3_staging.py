@@ -22,7 +22,7 @@ OUTPUTS = ("trajectories", "consort", "missingness", "anchors", "imputed", "stay
 
 
 def _demo() -> Path | None:
-    from conftest import shared_dir
+    from helpers.paths import shared_dir
 
     d = shared_dir()
     demo = d / "data" / "mimic-iii-demo" if d else None

@@ -18,7 +18,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import mimic_study_config, shared_dir
+from helpers.paths import shared_dir
+from helpers.workflow import mimic_study_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

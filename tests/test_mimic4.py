@@ -19,7 +19,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import mimic_study_config, run_snakemake, shared_dir
+from helpers.paths import shared_dir
+from helpers.workflow import mimic_study_config, run_snakemake
 
 from twinfalsify import schema
 from twinfalsify.provenance import code_scope

@@ -12,8 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import ROOT, built_once, run_snakemake
 from fakes import FAULTY_TWIN
+from helpers.paths import ROOT
+from helpers.workflow import built_once, run_snakemake
 
 from twinfalsify import summary, twin_tests
 from twinfalsify.explain import explain

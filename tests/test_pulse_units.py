@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import shared_dir
+from helpers.paths import shared_dir
 
 from twinfalsify.pulse import units as pu
 from twinfalsify.schema import FEATURES, INIT_FEATURES, ContractError

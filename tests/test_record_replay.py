@@ -8,11 +8,13 @@ import sys
 import numpy as np
 import pytest
 from fakes import FAULTY_TWIN
-from test_twin_runner import ENV, make_inputs, no_leftover_processes  # noqa: F401
+from helpers.paths import ENV
+from helpers.twins import make_inputs
 
 from twinfalsify.runs.replay import ReplayTwin
 from twinfalsify.runs.runner import simulate_via_protocol
 
+pytestmark = pytest.mark.usefixtures("no_leftover_processes")
 RECORD = [sys.executable, "-m", "twinfalsify.runs.record"]
 REPLAY = [sys.executable, "-m", "twinfalsify.runs.replay"]
 # Mixed outcomes: clamps, an init failure, an irreversible hour, plain runs.

@@ -32,9 +32,9 @@ from shlex import quote as shlex_quote
 import pandas as pd
 import pytest
 import yaml
-from conftest import copy_repo
 from fakes import FAULTY_TWIN
-from test_bad_inputs import ROOT
+from helpers.paths import ROOT
+from helpers.workflow import copy_repo
 
 from twinfalsify import provenance
 

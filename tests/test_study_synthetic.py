@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from study_helpers import build_study, evaluate_twin
+from helpers.studies import build_study, evaluate_twin
 
 
 @pytest.fixture(scope="module")

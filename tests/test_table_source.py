@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import run_snakemake
+from helpers.workflow import run_snakemake
 
 from twinfalsify.schema import ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import generate

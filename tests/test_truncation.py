@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_twin_batch import HR, UNITS, _request, _serve
+from helpers.twins import HR, UNITS, serve_in_process, simulate_request
 
 from twinfalsify.runs.protocol import ProtocolError, check_result
 from twinfalsify.runs.truncation import hours_needed, parse_paths
@@ -32,12 +32,12 @@ def test_hours_needed_follows_the_longest_path_still_inside():
 
 
 def test_served_twin_stops_runs_no_path_needs():
-    req = _request(0, 4, seed=1)  # CountingTwin: HR rises with hour, ~50.3 + small shifts
+    req = simulate_request(0, 4, seed=1)  # CountingTwin: HR rises with hour, ~50.3 + small shifts
     hr1 = 50.0 + 0.25 * HR
     req["continue_while"] = [[["HR", "<=", hr1 - 10.0]]]  # hour 1 is never inside
-    whole = {**_request(1, 4, seed=1), "id": "whole"}
+    whole = {**simulate_request(1, 4, seed=1), "id": "whole"}
     for batch in (False, True):
-        got = {a["id"]: a for a in _serve([req, whole], batch=batch)}
+        got = {a["id"]: a for a in serve_in_process([req, whole], batch=batch)}
         assert len(got["r0"]["hours"]) == 1 and got["r0"]["truncated"] is True
         assert got["r0"]["status"] == "ok"
         assert len(got["whole"]["hours"]) == 4 and "truncated" not in got["whole"]

@@ -17,12 +17,15 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from test_twin_runner import (  # shared helpers and the no-leftover-processes check
-    ENV,
-    FAULTY,
+from fakes import FAULTY_TWIN
+from helpers.paths import ENV
+from helpers.twins import (
+    UNITS,
+    CountingTwin,
     expected_features,
     make_inputs,
-    no_leftover_processes,  # noqa: F401 - autouse fixture
+    serve_in_process,
+    simulate_request,
     stamps,
 )
 
@@ -38,52 +41,12 @@ from twinfalsify.runs.protocol import (
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.registry import make_twin
 from twinfalsify.runs.runner import simulate_via_protocol
-from twinfalsify.runs.serve import BATCH_MAX, batch_handler, handlers
-from twinfalsify.schema import FEATURE_BY_NAME, FEATURES
+from twinfalsify.runs.serve import BATCH_MAX, handlers
+from twinfalsify.schema import FEATURES
 from twinfalsify.sources.synthetic import generate
-from twinfalsify.twins.base import SimResult
 
-UNITS = {name: f.unit for name, f in FEATURE_BY_NAME.items()}
-HR = FEATURES.index("HR")
-
-
-class CountingTwin:
-    """x_h = x0 + h * (iv_h / 100 - vaso_h) + (seed mod 7) / 10; records every call's n.
-
-    Row-wise arithmetic, so a run's numbers cannot depend on its batch; a run
-    with seed 13 raises (to exercise the one-at-a-time fallback).
-    """
-
-    name = "counting"
-
-    def __init__(self) -> None:
-        self.calls: list[int] = []
-
-    def simulate(self, x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> SimResult:
-        self.calls.append(len(x0))
-        if (seeds == 13).any():
-            raise RuntimeError("seed 13 is unlucky")
-        n, t, _ = doses.shape
-        h = np.arange(1, t + 1)[None, :]
-        shift = h * (doses[..., 0] / 100 - doses[..., 1]) + (seeds % 7)[:, None] / 10
-        feats = x0[list(FEATURES)].to_numpy(float)[:, None, :] + shift[..., None]
-        return SimResult(feats, np.full(n, "ok", dtype=object))
-
-
-def _request(i: int, hours: int, seed: int) -> dict:
-    x0 = {f: 50.0 + i + 0.25 * j for j, f in enumerate(FEATURES)}
-    doses = [[10.0 * (i + h), 0.01 * h] for h in range(hours)]
-    return {"op": "simulate", "id": f"r{i}", "x0": x0, "doses": doses, "hours": hours,
-            "seed": seed}
-
-
-def _serve(messages: list[dict], *, batch: bool, twin=None) -> list[dict]:
-    twin = twin or CountingTwin()
-    hello, simulate = handlers(twin, batch=BATCH_MAX)
-    stdout = io.StringIO()
-    serve_forever(hello, simulate, io.StringIO("".join(map(encode, messages))), stdout,
-                  simulate_batch=batch_handler(twin) if batch else None)
-    return [decode(line) for line in stdout.getvalue().splitlines()]
+FAULTY = FAULTY_TWIN
+pytestmark = pytest.mark.usefixtures("no_leftover_processes")
 
 
 # -- protocol: hello capability, envelope, serve_forever ----------------------------
@@ -114,11 +77,13 @@ def test_check_results_envelope():
 @pytest.mark.parametrize("vectorised", [True, False], ids=["batch_handler", "per_request"])
 def test_batch_answer_equals_plain_answers_in_order(vectorised):
     """A batch (mixed lengths, one bad request, one raising run) == the plain answers."""
-    reqs = [_request(0, 2, 1), _request(1, 4, 2), _request(2, 2, 13), _request(3, 4, 3),
-            {**_request(4, 2, 4), "x0": {"HR": 1.0}}, _request(5, 1, 5)]
+    reqs = [simulate_request(0, 2, 1), simulate_request(1, 4, 2), simulate_request(2, 2, 13),
+            simulate_request(3, 4, 3), {**simulate_request(4, 2, 4), "x0": {"HR": 1.0}},
+            simulate_request(5, 1, 5)]
     twin = CountingTwin()
-    answers = _serve([{"op": "simulate_batch", "requests": reqs}], batch=vectorised, twin=twin)
-    plain = _serve(reqs, batch=False)
+    answers = serve_in_process([{"op": "simulate_batch", "requests": reqs}], batch=vectorised,
+                               twin=twin)
+    plain = serve_in_process(reqs, batch=False)
     assert len(answers) == 1 and answers[0]["op"] == "results"
     results = answers[0]["results"]
     assert [r["id"] for r in results] == [r["id"] for r in reqs]
@@ -140,8 +105,8 @@ def test_batch_answer_equals_plain_answers_in_order(vectorised):
 
 
 def test_serve_forever_batch_fallbacks():
-    reqs = [_request(0, 2, 1), _request(1, 3, 2)]
-    plain = _serve(reqs, batch=False)
+    reqs = [simulate_request(0, 2, 1), simulate_request(1, 3, 2)]
+    plain = serve_in_process(reqs, batch=False)
 
     def raising(requests):
         raise RuntimeError("vectorised path broken")
@@ -156,7 +121,7 @@ def test_serve_forever_batch_fallbacks():
                       io.StringIO(encode({"op": "simulate_batch", "requests": reqs})),
                       stdout, simulate_batch=fn)
         assert decode(stdout.getvalue())["results"] == plain
-    answers = _serve([{"op": "simulate_batch", "requests": "nope"},
+    answers = serve_in_process([{"op": "simulate_batch", "requests": "nope"},
                       {"op": "simulate_batch", "requests": [reqs[0], 7]}], batch=True)
     assert answers[0]["op"] == "error" and "'requests' must be a list" in answers[0]["message"]
     assert answers[1]["results"][0] == plain[0]

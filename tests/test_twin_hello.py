@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 import yaml
 from fakes import FAULTY_TWIN
+from helpers.paths import ENV
+from helpers.workflow import BASE_CONFIG
 from slurm.runs import run
-from test_bad_inputs import BASE_CONFIG, ENV
 
 from twinfalsify.runs.hello import cost_line, projected_cost, seconds_per_hour, twin_hello
 from twinfalsify.schema import ContractError

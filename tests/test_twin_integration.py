@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
 from fakes.faulty_twin import expected
-from study_helpers import build_study
+from helpers.studies import build_study
 
 from twinfalsify.design import ActionBins
 from twinfalsify.pulse.replay import RecordedPulse

@@ -15,80 +15,20 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
 from fakes.faulty_twin import expected
+from helpers.paths import ENV
+from helpers.twins import expected_features, make_inputs, stamps
 
 from twinfalsify.runs import runner
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.runner import plan_groups, simulate_via_protocol
 from twinfalsify.schema import FEATURES, TWIN_STATUSES, ContractError
 
-SRC = Path(__file__).resolve().parents[1] / "src"
-ENV = {"PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 FAULTY = FAULTY_TWIN
 HR = FEATURES.index("HR")
-
-
-def _children() -> list[tuple[int, str]]:
-    """(pid, state) of every process whose parent is this test process (from /proc)."""
-    me, out = os.getpid(), []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[1]) == me:
-            out.append((int(entry.name), fields[0]))
-    return out
-
-
-@pytest.fixture(autouse=True)
-def no_leftover_processes():
-    before = {pid for pid, _ in _children()}
-    yield
-    deadline = time.monotonic() + 3.0
-    while True:
-        left = [(p, s) for p, s in _children() if p not in before]
-        if not left or time.monotonic() > deadline:
-            break
-        time.sleep(0.05)
-    assert not left, f"child processes left behind (pid, state): {left}"
-
-
-def make_inputs(n: int, t: int = 3, seed: int = 0) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    x0 = pd.DataFrame({f: rng.uniform(50, 100, n).round(3) for f in FEATURES})
-    doses = np.stack(
-        [rng.choice([0.0, 10.0, 50.0, 150.0], (n, t)), rng.choice([0.0, 0.05, 0.2], (n, t))],
-        axis=2,
-    )
-    seeds = np.arange(100, 100 + n, dtype=np.uint64)
-    return x0, doses, seeds
-
-
-def expected_features(x0: pd.DataFrame, doses: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """The faulty twin's good answer, recomputed here from its formula."""
-    out = np.empty((len(x0), doses.shape[1], len(FEATURES)))
-    for i in range(len(x0)):
-        iv = np.cumsum(doses[i, :, 0])
-        vaso = np.cumsum(doses[i, :, 1])
-        hours = np.arange(1, doses.shape[1] + 1)
-        shift = 0.001 * (0.5 * hours + 0.01 * iv + 10.0 * vaso + 0.001 * (int(seeds[i]) % 97))
-        moves = np.array([f not in ("age", "sex", "weight") for f in FEATURES], dtype=float)
-        out[i] = (x0.iloc[i][list(FEATURES)].to_numpy(float)[None, :]
-                  + shift[:, None] * moves[None, :])
-    return out
-
-
-def stamps(message: str) -> tuple[int, float, float]:
-    m = re.search(r"pid=(\d+) start=([\d.]+) end=([\d.]+)", message)
-    assert m, f"no timestamp in message {message!r}"
-    return int(m.group(1)), float(m.group(2)), float(m.group(3))
+pytestmark = pytest.mark.usefixtures("no_leftover_processes")
 
 
 def test_good_runs_exact_values_with_two_workers():

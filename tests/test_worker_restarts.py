@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from fakes import FAULTY_TWIN
-from test_bad_inputs import ENV
+from helpers.paths import ENV
 
 from twinfalsify.runs.plan import restart_warning, worker_summary
 from twinfalsify.runs.protocol_twin import ProtocolTwin

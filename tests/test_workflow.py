@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from conftest import run_snakemake
+from helpers.workflow import run_snakemake
 
 from twinfalsify.falsify import RESULT_COLUMNS
 
