@@ -93,61 +93,77 @@ def reference_runs(tmp_path_factory):
 
 # The files whose tests take longest (CPU or waiting), started first so that no worker is left
 # with a long file at the end while the other idles (longest-first scheduling); the rest keep
-# their order. From `--cpu-report` and `--durations` of a full run.
+# their order. From `--cpu-report` and `--durations` of a full run. Paths are relative to tests/.
 LONG_FIRST = (
-    "test_reruns.py", "test_sequential.py", "test_twin_check.py", "test_slurm.py",
-    "test_tutorial_own_twin.py", "test_table_source.py", "test_twin_integration_workflow.py",
-    "test_adaptive.py", "test_figures_workflow.py", "test_resume.py", "test_mimic3_causality.py",
-    "test_mimic3_staging.py", "test_mimic4.py", "test_bad_inputs.py", "test_pulse_demo_study.py",
+    "workflow/test_reruns.py",
+    "inference/test_sequential.py",
+    "runs/test_twin_check.py",
+    "workflow/test_slurm.py",
+    "workflow/test_tutorial_own_twin.py",
+    "sources/test_table_source.py",
+    "workflow/test_twin_integration_workflow.py",
+    "runs/test_adaptive.py",
+    "workflow/test_figures_workflow.py",
+    "workflow/test_resume.py",
+    "sources/mimic3/test_mimic3_causality.py",
+    "sources/mimic3/test_mimic3_staging.py",
+    "sources/mimic4/test_mimic4.py",
+    "workflow/test_bad_inputs.py",
+    "pulse/test_pulse_demo_study.py",
 )
 
 
 # Tests not marked `slow` in their file that still take more than about 2 CPU-seconds (from
 # `--cpu-report`): marked slow here, so `make test-fast` (`-m "not slow"`) stays a quick inner
-# loop; `make test` runs them all.
+# loop; `make test` runs them all. Node ids are relative to tests/ (`runs/test_x.py::test_y`).
 SLOW_UNIT_TESTS = (
-    "test_adaptive.py::test_a_budget_too_small_to_reject_spends_no_twin_time_and_says_so",
-    "test_adaptive.py::test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes",
-    "test_adaptive.py::test_depth_truncation_drops_only_hours_no_hypothesis_can_use",
-    "test_breaker.py::test_one_failing_patient_does_not_stop_the_shard",
-    "test_calibration.py::test_run_adaptive_equals_adaptive_test",
-    "test_calibration.py::test_tiny_run_tables_and_known_answers",
-    "test_failfast.py::test_breaker_leaves_a_partly_failing_twin_alone",
-    "test_failfast.py::test_crashing_twin_stops_after_max_restarts",
-    "test_failfast.py::test_stdout_logging_twin_stops_within_k_runs",
-    "test_mimic3_causality.py::test_fixture_values_never_see_later_rows",
-    "test_mimic3_staging.py::test_staged_extraction_equals_unstaged_on_the_fixture",
-    "test_mimic3_synth.py::test_extraction_gives_the_cohort_and_values_built_in",
-    "test_mimic3_synth.py::test_parquet_extracts_like_csv",
-    "test_mimic3_synth.py::test_tables_have_full_mimic_proportions",
-    "test_mimic3_workflow.py::test_another_mimic3_dir_reruns_the_extraction",
-    "test_mimic4.py::test_mimic4_gives_the_mimic3_cohort_on_the_demo_metavision_stays",
-    "test_record_replay.py::test_replay_equals_the_recorded_runs",
-    "test_sequential.py::test_conservative_failures_keep_p_values_valid_when_failures_depend_on_the_outcome",
-    "test_sequential.py::test_futility_never_loses_a_rejection_and_early_rejection_matches_p",
-    "test_sequential.py::test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary",
-    "test_study_synthetic.py::test_more_bias_more_rejections",
-    "test_study_synthetic.py::test_oracle_is_not_rejected",
-    "test_synthetic_world.py::test_true_interventional_mean_lies_within_bounds",
-    "test_twin_batch.py::test_batches_are_sent_and_results_identical",
-    "test_twin_batch.py::test_mixed_faults_in_batches_match_unbatched",
-    "test_twin_batch.py::test_served_builtin_batches_bit_identical_to_in_process",
-    "test_twin_check.py::test_command_line_exit_codes_and_table",
-    "test_twin_integration.py::test_protocol_twin_is_bit_identical_to_in_process",
-    "test_twin_runner.py::test_mixed_faults_every_run_accounted_once",
-    "test_twin_runner.py::test_retry_then_success",
-    "test_twin_runner.py::test_same_results_for_one_or_two_workers_and_any_input_order",
+    "runs/test_adaptive.py::test_a_budget_too_small_to_reject_spends_no_twin_time_and_says_so",
+    "runs/test_adaptive.py::test_adaptive_batches_let_a_save_restore_twin_branch_shared_prefixes",
+    "runs/test_adaptive.py::test_depth_truncation_drops_only_hours_no_hypothesis_can_use",
+    "runs/test_breaker.py::test_one_failing_patient_does_not_stop_the_shard",
+    "calibration/test_calibration.py::test_run_adaptive_equals_adaptive_test",
+    "calibration/test_calibration.py::test_tiny_run_tables_and_known_answers",
+    "runs/test_failfast.py::test_breaker_leaves_a_partly_failing_twin_alone",
+    "runs/test_failfast.py::test_crashing_twin_stops_after_max_restarts",
+    "runs/test_failfast.py::test_stdout_logging_twin_stops_within_k_runs",
+    "sources/mimic3/test_mimic3_causality.py::test_fixture_values_never_see_later_rows",
+    "sources/mimic3/test_mimic3_staging.py::test_staged_extraction_equals_unstaged_on_the_fixture",
+    "sources/mimic3/test_mimic3_synth.py::test_extraction_gives_the_cohort_and_values_built_in",
+    "sources/mimic3/test_mimic3_synth.py::test_parquet_extracts_like_csv",
+    "sources/mimic3/test_mimic3_synth.py::test_tables_have_full_mimic_proportions",
+    "workflow/test_mimic3_workflow.py::test_another_mimic3_dir_reruns_the_extraction",
+    "sources/mimic4/test_mimic4.py::test_mimic4_gives_the_mimic3_cohort_on_the_demo_metavision_stays",
+    "runs/test_record_replay.py::test_replay_equals_the_recorded_runs",
+    "inference/test_sequential.py::test_conservative_failures_keep_p_values_valid_when_failures_depend_on_the_outcome",
+    "inference/test_sequential.py::test_futility_never_loses_a_rejection_and_early_rejection_matches_p",
+    "inference/test_sequential.py::test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary",
+    "core/test_study_synthetic.py::test_more_bias_more_rejections",
+    "core/test_study_synthetic.py::test_oracle_is_not_rejected",
+    "sources/test_synthetic_world.py::test_true_interventional_mean_lies_within_bounds",
+    "runs/test_twin_batch.py::test_batches_are_sent_and_results_identical",
+    "runs/test_twin_batch.py::test_mixed_faults_in_batches_match_unbatched",
+    "runs/test_twin_batch.py::test_served_builtin_batches_bit_identical_to_in_process",
+    "runs/test_twin_check.py::test_command_line_exit_codes_and_table",
+    "runs/test_twin_integration.py::test_protocol_twin_is_bit_identical_to_in_process",
+    "runs/test_twin_runner.py::test_mixed_faults_every_run_accounted_once",
+    "runs/test_twin_runner.py::test_retry_then_success",
+    "runs/test_twin_runner.py::test_same_results_for_one_or_two_workers_and_any_input_order",
 )
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m "not slow"` deselects
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    def file_of(item: pytest.Item) -> str:
+        """The item's file relative to tests/ (``runs/test_twin_runner.py``)."""
+        return Path(os.path.relpath(item.path, TESTS)).as_posix()
+
     for item in items:
-        if item.nodeid.removeprefix("tests/").split("[")[0] in SLOW_UNIT_TESTS:
+        test = item.nodeid.partition("::")[2].split("[")[0]
+        if f"{file_of(item)}::{test}" in SLOW_UNIT_TESTS:
             item.add_marker(pytest.mark.slow)
 
     def rank(item: pytest.Item) -> int:
-        name = Path(os.path.relpath(item.path, TESTS)).as_posix()
+        name = file_of(item)
         return LONG_FIRST.index(name) if name in LONG_FIRST else len(LONG_FIRST)
 
     items.sort(key=rank)  # stable: the order within a file is kept
