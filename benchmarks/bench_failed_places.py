@@ -9,7 +9,7 @@ fails with a probability that depends on its own outcome x_i. ``testing.failed_r
 conservative`` (each failed run's worst case at its place, ``inference.failures``) against
 ``drop``. Prints the rejection rate of H_lo (the side failures of high outcomes push towards
 rejection) and of H_up at alpha, with exact (Clopper-Pearson, 95 %) intervals. The fast
-version is ``tests/test_failed_places.py::test_level_under_outcome_dependent_failures``.
+version is ``tests/inference/test_failed_places.py::test_level_under_outcome_dependent_failures``.
 """
 
 from __future__ import annotations

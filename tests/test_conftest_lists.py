@@ -10,8 +10,7 @@ import ast
 from pathlib import Path
 
 from conftest import LONG_FIRST, SLOW_UNIT_TESTS
-
-TESTS = Path(__file__).resolve().parent
+from helpers.paths import TESTS
 
 
 def _functions(path: Path) -> set[str]:

@@ -1,6 +1,6 @@
 """The library's import graph, and code fingerprints of what a rule script depends on.
 
-One parser serves two uses: tests/test_layout.py checks the graph (no cycle, no upward
+One parser serves two uses: tests/core/test_layout.py checks the graph (no cycle, no upward
 import), and the workflow (common.smk) gives every rule a ``code`` param = the fingerprint
 of the library modules its script imports, directly or transitively. Snakemake reruns a
 job whose params changed, so a fix in ``bounds.py`` reruns exactly the rules whose scripts

@@ -10,9 +10,9 @@ kind, the correction and alpha, all read from the results.
     python -m twinfalsify.readme_table results/synthetic --config config/config.yaml \\
         --readme README.md   # rewrite the table between the README's markers
 
-``make readme-table`` runs the second form on the default study. ``tests/test_readme_table.py``
-checks the generator on the tiny test study and, where ``results/synthetic`` exists, that the
-README's numbers are the generator's.
+``make readme-table`` runs the second form on the default study.
+``tests/workflow/test_readme_table.py`` checks the generator on the tiny test study and, where
+``results/synthetic`` exists, that the README's numbers are the generator's.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Start and stop a one-node Slurm cluster on this machine, by hand (no systemd).
 
-Used by tests/test_slurm.py and usable from a shell:
+Used by tests/workflow/test_slurm.py and usable from a shell:
 
     python tests/slurm/cluster.py start /tmp/tf-slurm   # prints the SLURM_CONF to export
     python tests/slurm/cluster.py stop  /tmp/tf-slurm

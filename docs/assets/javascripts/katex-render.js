@@ -2,7 +2,7 @@
 // pymdownx.arithmatex (generic mode) leaves inline maths as <span class="arithmatex">\(...\)</span>
 // and display maths as <div class="arithmatex">\[...\]</div>; each is replaced by KaTeX's HTML.
 // throwOnError: false turns a formula KaTeX cannot parse into a visible .katex-error node
-// (tests/test_docs_maths.py fails on one) instead of leaving the page half rendered.
+// (tests/docs/test_docs_maths.py fails on one) instead of leaving the page half rendered.
 (function () {
   "use strict";
   function render(root) {

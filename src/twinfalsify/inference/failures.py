@@ -66,7 +66,7 @@ with x = 0. Why this is valid whatever the failed runs would have produced:
 The reported p-value is max(p_cons, p_drop): >= a valid p-value, so valid, and never below
 the drop p-value. Without failed runs the sequence and bets are the drop test's (bit for
 bit). The same construction is the sequential mode's (``inference.sequential``). Tested:
-``tests/test_failed_places.py`` (placement, a brute-force loop, dominance over random
+``tests/inference/test_failed_places.py`` (placement, a brute-force loop, dominance over random
 completions, level under outcome-dependent failures).
 """
 

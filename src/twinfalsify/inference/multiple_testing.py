@@ -13,7 +13,7 @@ With the m p-values of a family sorted, :math:`p_{(1)} \le \dots \le p_{(m)}`:
 
 The decisions equal ``statsmodels.stats.multitest.multipletests`` with ``holm``,
 ``bonferroni`` and ``fdr_by``, operation for operation
-(``tests/test_inference_hoeffding.py`` compares them on random and tied families). They are
+(``tests/inference/test_hoeffding.py`` compares them on random and tied families). They are
 written out here because that function calls ``gc.collect()`` on every family (about 75 ms
 in a rule job's heap) and its import brings scipy.stats (about 0.9 s per rule job).
 """

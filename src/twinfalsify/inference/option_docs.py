@@ -2,7 +2,7 @@
 
 The configuration reference (``twinfalsify.config_reference``) lists the options of
 ``testing.methods.<method>`` from here. The limits restate each method module's
-``check_options`` and the defaults its function's signature; ``tests/test_config_reference.py``
+``check_options`` and the defaults its function's signature; ``tests/docs/test_config_reference.py``
 holds them to it (every option of ``registry.METHODS`` documented; a documented default equal
 to the signature's; a value just past a documented limit refused by ``check_options``, the
 limit itself accepted unless open), so this page cannot drift from what a run does.

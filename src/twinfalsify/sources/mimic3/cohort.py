@@ -2,7 +2,7 @@
 trajectories over ``t_max`` + 1 hours from a time anchor t0 (ICU admission, or the first
 complete vital set), plus a CONSORT table, missingness, the anchor of each stay and a
 per-stay audit table. No value of hour t depends on anything charted after the end of
-hour t (tests/test_mimic3_causality.py).
+hour t (tests/sources/mimic3/test_mimic3_causality.py).
 
 Steps (each a row of the CONSORT table, ``STEPS``; every criterion is evaluated for every
 stay where it is defined; docs/how-to/mimic3.md explains each and how it differs from the
