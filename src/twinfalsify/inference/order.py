@@ -47,6 +47,7 @@ import numpy as np
 
 _PERSON = b"twinfalsify-ord"  # blake2b personalisation: this use only
 _PERSON_COPY = b"twinfalsify-cpy"  # ... and for the copy index of identical contents
+_PERSON_HYP = b"twinfalsify-hyp"  # ... and for the hypotheses' keys under an order seed
 
 
 def _canonical(a: np.ndarray) -> np.ndarray:
@@ -61,11 +62,13 @@ def _key_bytes(seed: int) -> bytes:
     return int(seed).to_bytes(16, "little", signed=True)
 
 
-def content_keys(x: np.ndarray, actions: np.ndarray, seed: int) -> np.ndarray:
+def content_keys(x: np.ndarray, actions: np.ndarray, seed: int,
+                 copies: bool = True) -> np.ndarray:
     """(n, T+1) uint64: column t keys each trajectory by its X_0:t and A_1:t (module doc).
 
     ``x``: (n, T+1, F) features; ``actions``: (n, T) action codes; ``seed``: the study seed.
-    Column 0 equals :func:`x0_keys` of the X_0 rows.
+    Column 0 equals :func:`x0_keys` of the X_0 rows. ``copies`` False: identical contents
+    keep identical keys (to count ties, :func:`tied_share`).
     """
     x = _canonical(x)
     a = np.ascontiguousarray(np.asarray(actions, dtype=np.int64))
@@ -80,9 +83,23 @@ def content_keys(x: np.ndarray, actions: np.ndarray, seed: int) -> np.ndarray:
             h.update(a[i, t - 1].tobytes())
             h.update(x[i, t].tobytes())
             out[i, t] = int.from_bytes(h.copy().digest(), "little")
-    for t in range(width):
-        out[:, t] = break_ties(out[:, t], seed)
+    if copies:
+        for t in range(width):
+            out[:, t] = break_ties(out[:, t], seed)
     return out
+
+
+def hypothesis_keys(h: int, order_seed: int | None) -> np.ndarray | None:
+    """(h,) int64 keys of the hypotheses' final permutations under an order seed (None: the
+    default keys 0..h-1). A keyed hash of (order seed, hypothesis row): another value-free
+    permutation of every hypothesis' data order, so each order seed is another valid
+    randomisation (``testing.order_seed``)."""
+    if order_seed is None:
+        return None
+    key = _key_bytes(order_seed)
+    return np.array([int.from_bytes(hashlib.blake2b(int(i).to_bytes(8, "little"), key=key,
+                                                    digest_size=8, person=_PERSON_HYP).digest(),
+                                    "little") >> 1 for i in range(h)], dtype=np.int64)
 
 
 def break_ties(keys: np.ndarray, seed: int) -> np.ndarray:
