@@ -72,7 +72,8 @@ def _rejection_rates(keys, reps: int, n: int, p: float, m: int, rng,
     h = len(groups["n"])
     s = HypothesisSamples(np.zeros(h), np.ones(h), np.array(groups["n"], np.int64),
                           Ragged.from_groups(groups["follow"]),
-                          Ragged.from_groups(groups["twin"]), keys=np.array(groups["key"], np.int64),
+                          Ragged.from_groups(groups["twin"]),
+                          keys=np.array(groups["key"], np.int64),
                           follow_pos=Ragged.from_groups(groups["pos"]))
     p_lo, p_up = betting_test(s, tune_alpha=ALPHA / 2)
     rej = np.stack([p_lo <= ALPHA, p_up <= ALPHA], axis=1).reshape(len(keys), reps, 2)
@@ -91,7 +92,7 @@ def test_binary_outcome_identical_covariates_holds_level_per_key():
     confirm = _rejection_rates([keys[worst_key]], 800, 20, 0.5, 20, rng)[0, worst_side]
     hits = int(round(confirm * 800))
     upper = stats.beta.ppf(0.995, hits + 1, 800 - hits)  # Clopper-Pearson, one side
-    assert upper < ALPHA, (seeds[worst_key], worst_side, confirm)
+    assert upper < ALPHA, (keys[worst_key], worst_side, confirm)
 
 
 def test_tied_contents_are_interleaved_not_blocked():

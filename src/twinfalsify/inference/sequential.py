@@ -20,7 +20,8 @@ P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence
 stopping time, however data-dependent.
 
 Observational side: the fixed-sample betting bound (``betting.ordered_sides``, fixed-n
-plug-in bets in the data order of the fixed test (keyed by the study seed): ``betting`` module doc "Order";
+plug-in bets in the data order of the fixed test, keyed by the study seed: ``betting``
+module doc "Order";
 running maximum; Ville).
 Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
 max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
