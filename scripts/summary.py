@@ -5,13 +5,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
-from twinfalsify.io import read_parquet, run_rule, write_text  # noqa: E402
+from twinfalsify.design import ActionBins  # noqa: E402
+from twinfalsify.io import read_json, read_parquet, run_rule, write_text  # noqa: E402
 from twinfalsify.summary import (  # noqa: E402
     clipped_shares,
     load_study_twin,
     study_summary,
     summary_html,
     summary_markdown,
+    tie_table,
 )
 
 SHARED = ("d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan")
@@ -33,6 +35,8 @@ def main(sm):
         read_parquet(sm.input.hypotheses, "hypotheses"),
         twins,
         methods=sm.params.testing["methods"],
+        ties=tie_table(read_parquet(sm.input.d, "D"),
+                       ActionBins.from_json(read_json(sm.input.actions)), int(sm.params.seed)),
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)

@@ -18,6 +18,7 @@ import pandas as pd
 from twinfalsify import bounds
 from twinfalsify.design import WHOLE_SPACE, ActionBins, StateBins, action_codes, state_codes
 from twinfalsify.inference.hoeffding import hoeffding_radius
+from twinfalsify.inference.order import content_keys, tied_share
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes, to_array
@@ -395,6 +396,16 @@ def _md(df: pd.DataFrame) -> str:
     return markdown_table(df, ".3g")
 
 
+def tie_table(d: pd.DataFrame, actions: ActionBins, seed: int) -> pd.DataFrame:
+    """Per hour t: how many of D's trajectories share their X_0:t, A_1:t with another (ties
+    the data order breaks by copy index, ``inference.order``)."""
+    keys = content_keys(to_array(d, FEATURES, T_MAX), action_codes(d, actions, T_MAX), seed,
+                        copies=False)
+    return pd.DataFrame([{"sample": "D", "t": t, "records": len(keys),
+                          "tied": f"{tied_share(keys[:, t]):.1%}"}
+                         for t in range(keys.shape[1])])
+
+
 def study_summary(
     study: str,
     d0: pd.DataFrame,
@@ -403,6 +414,7 @@ def study_summary(
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
     methods: Mapping[str, Mapping] | None = None,
+    ties: pd.DataFrame | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
     optionally "clipped": clipped_shares(...)}; methods: ``testing.methods`` (which
@@ -435,6 +447,8 @@ def study_summary(
         g = res.assign(untestable=refused(res, methods)).groupby(["method", "kind"])
         rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum(),
                             "untestable": g["untestable"].sum()}).reset_index()
+        if "seed_fragile" in res:  # decisions that change under another order seed
+            rej["seed_fragile"] = g["seed_fragile"].sum().to_numpy()
         rej["tested"] = rej["hypotheses"] - rej["untestable"]
         rej.insert(0, "twin", name)
         rej_rows.append(rej)
@@ -461,6 +475,8 @@ def study_summary(
 
     return {
         "cohort": cohort,
+        "ties": ties if ties is not None else pd.DataFrame(columns=["sample", "t", "records",
+                                                                     "tied"]),
         "hypotheses": hyp,
         "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
         "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
@@ -477,12 +493,15 @@ def study_summary(
 
 _TITLES = {
     "cohort": "Cohort and split",
+    "ties": "Tied records: share of D's trajectories whose X_0:t, A_1:t another trajectory "
+            "shares (the data order keys each copy apart, docs/explanation/statistics.md)",
     "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
     "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
     "clamps": "Share of twin initial states clamped, per feature",
     "rejections": "Rejections per twin, method and kind (after correction); untestable: "
                   "hypotheses the method refused (p = 1 by rule: n or nhat = 0, or below "
-                  "the bootstrap's min_n), so tested = hypotheses - untestable",
+                  "the bootstrap's min_n), so tested = hypotheses - untestable; seed_fragile "
+                  "(with testing.seed_check): decisions that change under another order seed",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
     "workers": "Twin worker restarts per shard (served twins): crashes (died during a "
                "request), hangs (killed at timeout_s), malformed answers",

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +22,15 @@ import pandas as pd
 from twinfalsify import bounds
 from twinfalsify.design import StateBins
 from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.inference.order import hypothesis_keys
 from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide
 from twinfalsify.inference.sensitivity import sensitivity_sweep
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import ContractError, TwinNodes
 from twinfalsify.stored_runs import TwinPlan, load_nodes, x0_frame
 
+# tests whose p-values depend on a seed (the betting test's order, the bootstrap's resamples)
+SEEDED_METHODS = ("betting", "bootstrap")
 # the files of a study a twin's tests read (keys of the rules' ``input``)
 STORED_INPUTS = ("d", "bins", "hypotheses", "counts", "follow", "plan", "runs")
 
@@ -60,7 +63,38 @@ def twin_samples(hyps: pd.DataFrame, obs: ObservationalSide, nodes: TwinNodes,
 
 def study_results(hyps: pd.DataFrame, samples: HypothesisSamples, n_failed: np.ndarray,
                   testing: Mapping[str, Any], seed: int) -> pd.DataFrame:
-    """The results table for the config's ``testing`` section (validated: every key set)."""
+    """The results table for the config's ``testing`` section (validated: every key set).
+
+    ``testing.order_seed`` (None: the study's data order) keys the order-dependent tests'
+    randomisation and is recorded in column ``order_seed``; with ``testing.seed_check`` K > 0
+    those tests are rerun under K other order seeds and column ``seed_fragile`` marks the
+    decisions that change under any of them (False for tests that use no randomisation).
+    """
+    order_seed = testing["order_seed"]
+    res = _results(hyps, samples, n_failed, testing, seed, order_seed)
+    res["order_seed"] = pd.array([order_seed] * len(res), dtype="Int64")
+    fragile = np.zeros(len(res), dtype=bool)
+    seeded = res["method"].isin(SEEDED_METHODS).to_numpy()
+    if testing["seed_check"] and seeded.any():
+        base = int(seed) if order_seed is None else int(order_seed)
+        spec = {k: v for k, v in testing["methods"].items() if k in SEEDED_METHODS}
+        for k in range(1, int(testing["seed_check"]) + 1):
+            other = (base + k) % (1 << 32)
+            again = _results(hyps, samples, n_failed, {**testing, "methods": spec}, other,
+                             other)
+            flip = res.loc[seeded, ["hyp_id", "side", "method"]].merge(
+                again[["hyp_id", "side", "method", "rejected"]], how="left", validate="1:1")
+            fragile[seeded] |= flip["rejected"].to_numpy(bool) != res.loc[
+                seeded, "rejected"].to_numpy(bool)
+    res["seed_fragile"] = fragile
+    return res
+
+
+def _results(hyps, samples, n_failed, testing, seed, order_seed) -> pd.DataFrame:
+    """run_tests under an order seed (None: the study's order and seed)."""
+    if order_seed is not None:
+        samples = replace(samples, keys=hypothesis_keys(len(samples), int(order_seed)))
+        seed = int(order_seed)
     return run_tests(
         hyps, samples, n_failed,
         make_methods(testing["methods"], int(seed), alpha=float(testing["alpha"])),
@@ -93,13 +127,17 @@ def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: li
     """The sensitivity sweep (``inference.sensitivity``) of these tests: at Delta = 0 exactly
     the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome."""
     alpha = float(testing["alpha"])
-    methods = make_methods(testing["methods"], int(seed), alpha=alpha)
+    order_seed = testing["order_seed"]
+    methods = make_methods(testing["methods"], int(seed if order_seed is None else order_seed),
+                           alpha=alpha)
+    samples = tt.samples if order_seed is None else replace(
+        tt.samples, keys=hypothesis_keys(len(tt.samples), int(order_seed)))
     t0 = time.perf_counter()
     if progress is not None:
         progress(f"sensitivity sweep: {len(deltas)} Delta values x {len(methods)} methods "
                  f"({', '.join(methods)}), corrected within each kind")
     table = sensitivity_sweep(
-        tt.samples, deltas, methods, alpha, testing["correction"],
+        samples, deltas, methods, alpha, testing["correction"],
         group=tt.hyps["outcome"].to_numpy(), n_failed=tt.n_failed,
         failed_runs=testing["failed_runs"], family=tt.hyps["kind"].to_numpy(),
         progress=progress,

@@ -67,7 +67,8 @@ def test_the_study_has_failed_runs_that_move_p_values(failing_study):
     tt = twin_tests.load_twin_tests(_paths(failing_study))
     drop = twin_tests.study_results(tt.hyps, tt.samples, tt.n_failed,
                                     {"alpha": 0.05, "correction": "holm",
-                                     "failed_runs": "drop", "methods": METHODS}, 7)
+                                     "failed_runs": "drop", "methods": METHODS,
+                                     "order_seed": None, "seed_check": 0}, 7)
     assert (drop["p_value"].to_numpy() < res["p_value"].to_numpy()).any()
 
 
@@ -75,7 +76,8 @@ def test_tests_rule_results_are_the_one_path_results(failing_study):
     """Recomputing results.parquet from the stored files with the one path gives it back."""
     cfg = yaml.safe_load((failing_study.parent.parent / "study.yaml").read_text())
     tt = twin_tests.load_twin_tests(_paths(failing_study))
-    testing = {"alpha": 0.05, "correction": "holm", **cfg["testing"]}
+    testing = {"alpha": 0.05, "correction": "holm", "order_seed": None, "seed_check": 0,
+               **cfg["testing"]}
     again = tt.results(testing, cfg["seed"])
     res = pd.read_parquet(failing_study / "twins" / TWIN / "results.parquet")
     pd.testing.assert_frame_equal(again, res, check_exact=True)

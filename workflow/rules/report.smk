@@ -64,6 +64,7 @@ rule summary:
         study=STUDY,
         twins=TWINS,
         testing=canon(config["testing"]),
+        seed=config["seed"],
         code=code("summary"),
     script:
         "../../scripts/summary.py"

@@ -7,8 +7,18 @@ per hypothesis as F = n_failed (``bounds.twin_runs``).
 
 - ``drop`` (the paper's behaviour, Cornish et al. 2026, Sec. 6: failed Pulse
   runs are left out): the test sees only the nhat successful runs.
-- ``conservative`` (default): reject only if the test would reject whatever the
-  failed runs would have produced. Each failed run either fails B_1:t
+- ``conservative`` (default): a p-value that is valid whatever the failed runs would have
+  produced: it is at least a valid p-value of the true completion. Exactly what it
+  dominates depends on the method. Hoeffding (a symmetric closed form): every completion,
+  so a rejection is a rejection of the completed sample however the failed runs had ended.
+  Betting with plug-in bets (the default, "in place" below): every completion scored with
+  the conservative sequence's own bets (the successful runs' plug-in bets, each failed run
+  at its place), the true completion among them; it is not the maximum over completions of
+  the ordinary test rerun on a completed sample, which would tune and place its bets on the
+  completed values, so a conservative rejection can coexist with a completion that the
+  ordinary test would not reject (such cases exist: a brute force over small cases finds
+  them; the level holds regardless). Bootstrap and the grid mixture: a maximum over a
+  few k (approximate, "Evaluation" below). Each failed run either fails B_1:t
   (excluded from the twin sample) or enters with some outcome in
   [y_lo, y_up]. For H_lo: Q_twin >= Q_lo the test rejects when the twin mean
   is low, so among the outcomes a failed run could take the least favourable
@@ -22,7 +32,7 @@ per hypothesis as F = n_failed (``bounds.twin_runs``).
   Qhat_lo - Qhat_twin at fixed sample sizes) moving an entering failed run's
   value to y_up can only raise p_lo, so for each k the worst completion puts
   every entering failed run at y_up; what is left is the maximum over k.
-  The tests' validity then holds for every completion, in particular the true
+  So for these tests validity holds for every completion, in particular the true
   one (assuming the successful runs are i.i.d. draws of the runs the twin
   would produce; failures need not be at random).
 

@@ -52,7 +52,8 @@ METHOD_DOCS: dict[str, str] = {
     "bootstrap": "the paper's bootstrap test: asymptotic, with no finite-sample guarantee; "
                  "its p-values come in steps of 2 / n_resamples",
     "betting": "exact test from betting confidence bounds (Waudby-Smith & Ramdas 2024); the "
-               "default bets are WSR's predictable plug-in bets in the data's order, no seed",
+               "default bets are WSR's predictable plug-in bets in the data's order, keyed by "
+               "the study seed (testing.order_seed)",
     "bernstein": "exact test from the empirical-Bernstein bound (Maurer & Pontil 2009); no "
                  "options",
 }
@@ -91,8 +92,8 @@ OPTIONS: dict[str, dict[str, OptionDoc]] = {
             "sample); mixture: order-free mixture of `grid` constant bets", "mixture",
             choices=("plugin", "mixture")),
         "order": OptionDoc(
-            "string or null", None, "plugin bets: each sample in its data order, no seed "
-            "(data), or a random order drawn from the study's seed (seed)", "seed",
+            "string or null", None, "plugin bets: each sample in its data order, keyed by "
+            "the study seed (data), or a random order drawn from the study's seed (seed)", "seed",
             choices=("data", "seed"), default_text="null = data"),
         "orders": OptionDoc(
             "integer or null", None, "plugin bets: K orders whose terminal capitals are "

@@ -20,7 +20,8 @@ P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence
 stopping time, however data-dependent.
 
 Observational side: the fixed-sample betting bound (``betting.ordered_sides``, fixed-n
-plug-in bets in the data order of the fixed test, no seed: ``betting`` module doc "Order";
+plug-in bets in the data order of the fixed test, keyed by the study seed: ``betting``
+module doc "Order";
 running maximum; Ville).
 Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
 max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
@@ -208,7 +209,7 @@ class SequentialState:
         self.obs_samples = HypothesisSamples(self.y_lo, self.y_up, self.obs.n,
                                              self.obs.follow, empty,
                                              follow_pos=self.obs.follow_pos)
-        # plug-in bets in the data order (as the fixed test's default: no seed), running
+        # plug-in bets in the data order (as the fixed test's default), running
         # maximum (the grid mixture of the fixed scheme, measured too: same decisions, ~5x the
         # compute; docs/explanation/sequential.md)
         self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c,
