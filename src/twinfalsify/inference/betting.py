@@ -96,15 +96,55 @@ best bet by at most a factor sqrt(r); a best bet outside the grid (variance belo
 1/(4 r^(2(J-1))), or a gap needing a bet below lambda_min) costs more, without bound.
 Measured in docs/reference/benchmarks.md.
 
+STaR bets ("star"). Target-recalculating bets after STaR-Bets (Voracek & Orabona 2025): in
+the same data order, each bet is sized so that the values left could still raise the
+capital to the target 1/delta0 (its own capital at m so far), at the current variance:
+
+    b_i(m) = min( sqrt(2 max(R - log K+_{i-1}(m), r0) / ((n - i + 1) S_i(m))), c / m ),
+    S_i(m) = min(sigma2_{i-1}, m (1 - m)),   R = log(1/delta0),   r0 = 1/2,
+
+sigma2_{i-1} the plug-in variance above (K- mirrored: 1 - x at 1 - m). In a Gaussian
+approximation n' values at bet b and variance S grow log K by n' (b gap - b^2 S / 2), whose
+largest value reaches a remaining need r exactly when b = sqrt(2 r / (n' S)); WSR's bet is
+this with r = R and n' = n throughout. m (1 - m) is the largest variance of a value in
+[0, 1] with mean m, the cap STaR-Bets put on S. Differences to STaR-Bets' code: the plug-in
+variance around the running mean (theirs: the second moment about m, plus a prior term),
+the truncation c < 1, the running maximum (theirs: the terminal capital, which their bet
+freezes at the target) and the floor r0 on the need.
+Validity: b_i(m) reads x_1..x_{i-1}, n, delta0 and m only, so for a true mean <= m every
+factor has conditional mean 1 + b_i (mean - m) <= 1 and K+ is a non-negative supermartingale
+(every factor >= 1 - c > 0): Ville's inequality applies as above.
+Monotonicity in m (what the crossing and the bound search need): write log K_i = h(log
+K_{i-1}, m), h(l, m) = l + log(1 + b(l, m) (x - m)). (a) h is non-decreasing in l: where the
+square root binds with need r = R - l > r0, d b / d l = -b / (2 r) >= -b since r >= 1/2, so
+d h / d l = (1 + (x - m) (b + d b / d l)) / (1 + b (x - m)) >= 0 for x >= m; for x < m, d b
+/ d l <= 0 helps; where c/m or the floor binds b does not depend on l. (b) h is
+non-increasing in m at fixed l: d h / d m has the sign of (d b / d m) (x - m) - b, and b is
+S^(-1/2) times a constant, with d log S / d m = 0 (sigma2) or 1/m - 1/(1 - m) (m (1 - m)),
+or c/m: so -1/m <= d log b / d m <= 1/(1 - m), which gives (d b / d m) (x - m) <= b for
+every x in [0, 1]. By induction on i, log K+_i(m) is non-increasing in m for every i, and so
+is its running maximum (K- non-decreasing). Without the floor (a) fails near the target (the
+bet's derivative in l is unbounded there) and the capital need not be monotone in m; the
+floor costs its need of 1/2 nat at most near the target. The bets depend on the tuning level
+delta0 through the target only, so, as for the plug-in bets, the p-value p = 2 / K* is valid
+at every level, and Holm's decisions at levels other than delta0's use capitals aimed at
+1/delta0. Failed runs are not placed (``failed_runs: conservative`` evaluates appended
+completions, as for the order-free mixture, which ``inference.failures``' argument covers for
+symmetric methods only: with failed runs use plug-in bets). Measured width: 0.91-1.03x
+deterministic STaR-Bets (plug-in bets 0.94-1.26x), above 1.02x for Bernoulli(1/2) at
+alpha = 0.05, n <= 200, hence not the default (docs/reference/benchmarks.md).
+
 Tuning level delta0: by default alpha0 / 2 with alpha0 = alpha / (2 H), alpha the family's
 level ``testing.alpha`` (the Bonferroni level over the 2H one-sided hypotheses, where Holm's
 decisions are made); any delta0 gives valid bounds, it only moves where they are tightest.
 
 Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; data order as
 above. The sides need not be independent (the union rule is a union bound over two
-marginally valid bounds; the twin's X_0 come from the same D patients). Reference:
+marginally valid bounds; the twin's X_0 come from the same D patients). References:
 I. Waudby-Smith & A. Ramdas (2024), "Estimating means of bounded random variables by
-betting", JRSS-B 86(1):1-27; Ville (1939).
+betting", JRSS-B 86(1):1-27; V. Voracek & F. Orabona (2025), "STaR-Bets: Sequential
+Target-Recalculating Bets for Tighter Confidence Intervals", NeurIPS 2025 (arXiv
+2505.22422); Ville (1939).
 """
 
 from __future__ import annotations
@@ -127,10 +167,11 @@ from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide
     plugin_bets,
     running_moments,
     segment_cumsum,
+    star_bets,
 )
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
-BETS = ("plugin", "mixture")  # WSR predictable plug-in (default) | order-free grid mixture
+BETS = ("plugin", "mixture", "star")  # WSR plug-in (default) | order-free mixture | STaR
 ORDER_KINDS = ("data", "seed")  # plug-in order: fixed by the data (default) | seeded
 MIX_GRID = 6  # J constant bets in the mixture (power against J: docs/explanation/statistics.md)
 MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
@@ -468,8 +509,12 @@ class Bets:
               c: float) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
         if self.kind == "mixture":
             return mixture_sides(samples, delta0, self.grid, self.ratio)
-        return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
-                             order=self.order)
+        sides = ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
+                              order=self.order)
+        if self.kind == "star":
+            d0 = np.broadcast_to(np.asarray(delta0, float), (len(samples),))
+            return tuple(star_side(s, d0) for s in sides)
+        return sides
 
     def twin_sides(self, samples: HypothesisSamples, delta0: float | np.ndarray, seed: int,
                    tw: OrderedSide) -> tuple[OrderedSide, OrderedSide]:
@@ -479,6 +524,12 @@ class Bets:
             return tw, tw
         return worst_twin_sides(samples, delta0, seed=seed, orders=self.orders,
                                 order=self.order)
+
+
+def star_side(side: OrderedSide, delta0: np.ndarray) -> OrderedSide:
+    """The same ordered values with target-recalculating bets (module doc, "STaR bets")."""
+    return OrderedSide(side.x, side.lam, side.offsets, side.copies,
+                       star_bets(side.x, side.offsets, delta0))
 
 
 def make_bets(bets: str = "plugin", orders: int | None = None,
@@ -494,6 +545,15 @@ def make_bets(bets: str = "plugin", orders: int | None = None,
                              "(the mixture is order-free and uses the terminal capital)")
         _check_grid(grid, grid_ratio)
         return Bets("mixture", grid=int(grid), ratio=float(grid_ratio))
+    if bets == "star":
+        if orders not in (None, 1):
+            raise ValueError("betting: bets: star takes one order (orders 1)")
+        order = "data" if order is None else order
+        if order not in ORDER_KINDS:
+            raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, "
+                             f"got {order!r}")
+        return Bets("star", orders=1, running_max=True if running_max is None
+                    else bool(running_max), order=order)
     k = default_orders if orders is None else int(orders)
     if k < 1:
         raise ValueError(f"betting: orders must be >= 1, got {k}")

@@ -13,6 +13,22 @@ from dataclasses import dataclass
 import numpy as np
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
+STAR_FLOOR = 0.5  # r0: the smallest remaining need (nats) a STaR bet is sized for (star_bets)
+
+
+@dataclass
+class StarBets:
+    """What a target-recalculating bet reads besides the values (:func:`star_bets`).
+
+    ``sig2``: the predictable plug-in variance sigma2_{i-1} before every value (N,);
+    ``left``: the values left, this one included, n - i + 1 (N,); ``target``: log(1/delta0)
+    per group (G,). ``_by_step`` caches the values regrouped by position (built once).
+    """
+
+    sig2: np.ndarray
+    left: np.ndarray
+    target: np.ndarray
+    _by_step: tuple | None = None
 
 @dataclass
 class OrderedSide:
@@ -27,6 +43,7 @@ class OrderedSide:
     lam: np.ndarray  # (N,) predictable bets lambda_i (before the m-dependent truncation)
     offsets: np.ndarray  # (K G + 1,)
     copies: int = 1
+    star: StarBets | None = None  # target-recalculating bets (then ``lam`` is not used)
 
     @property
     def sizes(self) -> np.ndarray:
@@ -43,9 +60,11 @@ class OrderedSide:
         rows = (np.arange(self.copies)[:, None] * g + np.asarray(groups)[None, :]).ravel()
         keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), rows), self.sizes)
         sizes = self.sizes[rows]
+        star = None if self.star is None else StarBets(
+            self.star.sig2[keep], self.star.left[keep], self.star.target[rows])
         return OrderedSide(
             self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-            self.copies,
+            self.copies, star,
         )
 
 
@@ -98,6 +117,83 @@ def plugin_bets(
     return np.sqrt(k[gid] / prev)
 
 
+def star_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray,
+              layout: tuple[np.ndarray, np.ndarray] | None = None) -> StarBets:
+    """Target-recalculating (STaR) bets' inputs for every group; the bets themselves depend
+    on m and on the capital so far, and are formed in :func:`star_log_capital`.
+
+    Parameters: ``x`` values in [0, 1] group after group in their order; ``offsets`` the
+    groups' bounds; ``delta0`` one tuning level per group (the capital's target is
+    1/delta0). Returns the predictable plug-in variance sigma2_{i-1} (as
+    :func:`running_moments`), the values left n - i + 1 and log(1/delta0).
+    """
+    sizes = np.diff(offsets)
+    gid, t = flat_layout(offsets) if layout is None else layout
+    _, prev = running_moments(x, offsets, (gid, t))
+    with np.errstate(divide="ignore"):
+        target = np.log(1.0 / np.broadcast_to(np.asarray(delta0, float), sizes.shape))
+    return StarBets(prev, (sizes[gid] - t + 1).astype(float), target)
+
+
+def _by_step(side: OrderedSide) -> tuple:
+    """The side's values regrouped by position: groups sorted by size (longest first), so at
+    position t the groups still running are a prefix; per position, slices of flat arrays."""
+    st = side.star
+    if st._by_step is None:
+        sizes = side.sizes
+        order = np.argsort(-sizes, kind="stable")
+        ssz = sizes[order]
+        tmax = int(ssz[0]) if len(ssz) else 0
+        active = np.searchsorted(-ssz, -np.arange(tmax), side="left")  # groups with size > t
+        starts = side.offsets[:-1][order]
+        idx = np.concatenate([starts[:a] + t for t, a in enumerate(active)]) if tmax else \
+            np.zeros(0, np.int64)
+        bounds = np.concatenate([[0], np.cumsum(active)]).astype(np.int64)
+        st._by_step = (order, active, bounds, side.x[idx], st.sig2[idx], st.left[idx])
+    return st._by_step
+
+
+def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
+                     c: float = C_TRUNC) -> np.ndarray:
+    """log max_{0<=t<=n} K^{sign}_t(m) per group with target-recalculating bets.
+
+    K+ (``sign`` +1), for each group with values x_1..x_n in [0, 1], target T = 1/delta0,
+    R = log T and l_i = log K+_i(m) (l_0 = 0)::
+
+        K+_i(m) = K+_{i-1}(m) (1 + b_i(m) (x_i - m)),
+        b_i(m) = min( sqrt(2 max(R - l_{i-1}(m), r0) / ((n - i + 1) S_i(m))), c / m ),
+        S_i(m) = min(sigma2_{i-1}, m (1 - m)),   r0 = 1/2 (``STAR_FLOOR``),
+
+    sigma2_{i-1} the predictable plug-in variance of :func:`running_moments`. The bet is the
+    one that, at the current variance, lets the n - i + 1 values left raise the capital by the
+    factor still missing to the target, exp(R - l_{i-1}) (Voracek & Orabona 2025, STaR-Bets;
+    for one-sided tests of mean <= m the largest variance is m (1 - m), their cap of S).
+    K- is K+ of 1 - x at 1 - m (S and sigma2 are symmetric). Validity and monotonicity in m:
+    :mod:`twinfalsify.inference.betting`'s module doc, "STaR bets". Terminal capital
+    (``running_max`` False) or running maximum; one pass over positions, vectorised over
+    groups.
+    """
+    order, active, bounds, xs, sig2, left = _by_step(side)
+    m = np.asarray(m, float)[order]
+    target = side.star.target[order]
+    if sign < 0:
+        xs, m = 1.0 - xs, 1.0 - m
+    cap = c / m
+    var_m = m * (1.0 - m)
+    ell, top = np.zeros(len(m)), np.zeros(len(m))
+    for t, a in enumerate(active):
+        sl = slice(bounds[t], bounds[t + 1])
+        s = np.minimum(sig2[sl], var_m[:a])
+        need = np.maximum(target[:a] - ell[:a], STAR_FLOOR)
+        b = np.minimum(np.sqrt(2.0 * need / (left[sl] * s)), cap[:a])
+        ell[:a] += np.log1p(b * (xs[sl] - m[:a]))
+        if running_max:
+            np.maximum(top[:a], ell[:a], out=top[:a])
+    out = np.empty(len(m))
+    out[order] = top if running_max else ell
+    return out
+
+
 _CHUNK = 1 << 17  # elements per chunk: keeps the working arrays in cache (~3x faster)
 
 
@@ -124,6 +220,10 @@ def log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool =
     mixture side can be paired with a running-maximum side. Evaluated chunk by chunk of
     groups (cache-sized working arrays).
     """
+    if side.star is not None:
+        if side.copies > 1:
+            raise ValueError("betting: target-recalculating bets take one order")
+        return star_log_capital(side, m, sign, running_max, c)
     if side.copies > 1:
         one = OrderedSide(side.x, side.lam, side.offsets)
         per = log_capital(one, np.tile(np.asarray(m, float), side.copies), sign, False, c)

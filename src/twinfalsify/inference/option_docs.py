@@ -89,8 +89,9 @@ OPTIONS: dict[str, dict[str, OptionDoc]] = {
     "betting": {
         "bets": OptionDoc(
             "string", "plugin", "plugin: WSR's predictable plug-in bets (one order of each "
-            "sample); mixture: order-free mixture of `grid` constant bets", "mixture",
-            choices=("plugin", "mixture")),
+            "sample); mixture: order-free mixture of `grid` constant bets; star: "
+            "target-recalculating bets after STaR-Bets (same order as plugin)", "mixture",
+            choices=("plugin", "mixture", "star")),
         "order": OptionDoc(
             "string or null", None, "plugin bets: each sample in its data order, keyed by "
             "the study seed (data), or a random order drawn from the study's seed (seed)", "seed",
