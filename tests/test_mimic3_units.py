@@ -15,11 +15,11 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 
 def test_data_tables_have_meaning_and_version():
-    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "2",
+    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "3",
                 "sample_and_hold.csv": "2", "vasopressors.csv": "3", "fluids.csv": "1",
                 "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "3",
                 "withdrawal.csv": "1", "heights.csv": "1",
-                "specimens.csv": "1", "screens.csv": "1"}
+                "specimens.csv": "1", "screens.csv": "1", "bp_devices.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name

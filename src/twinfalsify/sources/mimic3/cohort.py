@@ -444,14 +444,13 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
     converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
     only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). Weights implausible
     for the patient's height are deleted (``implausible_weight``; appended to ``dropped``
-    when given). A charted mean pressure outside [diastolic, systolic] of the pressures
-    charted at or before it is deleted (``hourly.map_outside_range``; ``counts["map_outside"]``
-    receives the rows per stay when ``counts`` is given). ``opts``: the item switches
+    when given). A charted mean pressure above the systolic or below the diastolic of the
+    same device charted at the same time is deleted (``hourly.map_outside_range``, references
+    from ``_bp_references``; ``counts["map_outside"]`` receives the rows per stay when
+    ``counts`` is given). ``opts``: the item switches
     (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
     opts = opts or Mimic3Options()
     wanted = tuple(features)
-    if "MeanBP" in wanted:  # the MAP check reads the systolic and diastolic pressures
-        features = (*wanted, *(f for f in ("SysBP", "DiaBP") if f not in wanted))
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
     if opts.bp_items == "ai_clinician":
@@ -518,10 +517,13 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
         le = le[~hit]
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
-    bad_map = hourly.map_outside_range(ev)
-    if counts is not None:
-        counts["map_outside"] = ev.loc[bad_map, "icustay_id"].value_counts()
-    ev = ev[~bad_map & ev["feature"].isin(wanted).to_numpy()].reset_index(drop=True)
+    if "MeanBP" in wanted:
+        is_map = (ev["feature"] == "MeanBP").to_numpy()
+        bad_map = np.zeros(len(ev), dtype=bool)
+        bad_map[is_map] = hourly.map_outside_range(ev[is_map], _bp_references(con))
+        if counts is not None:
+            counts["map_outside"] = ev.loc[bad_map, "icustay_id"].value_counts()
+        ev = ev[~bad_map].reset_index(drop=True)
     if "weight" in features:
         bad = implausible_weight(con, stays, ev)
         if dropped is not None:
@@ -562,7 +564,30 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
                         pd.DataFrame({"icustay_id": g["icustay_id"], "time": g["time"],
                                       "feature": "sofa_gcs", "value": g["sum"]})],
                        ignore_index=True)
-    return ev
+    return ev[["icustay_id", "time", "feature", "value"]]
+
+
+def _bp_references(con) -> pd.DataFrame:
+    """The systolic and diastolic pressures of bp_devices.csv charted in the stays and
+    window of the table ``win`` (registered by ``_events``), outliers deleted as their
+    feature's: the MAP check's references (``hourly.map_outside_range``). Read whatever
+    ``bp_items`` says, so that the check has the same-device diastolic either way."""
+    dev = hourly.bp_devices()
+    dev = dev[dev["role"].isin(["sys", "dia"])]
+    con.register("bp_ref_items", dev[["itemid"]])
+    r = con.execute(f"""
+        SELECT w.icustay_id, {_ts('c.CHARTTIME')} AS time, CAST(c.ITEMID AS BIGINT) AS itemid,
+               TRY_CAST(c.VALUENUM AS DOUBLE) AS value
+        FROM CHARTEVENTS c JOIN win w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE CAST(c.ITEMID AS BIGINT) IN (SELECT itemid FROM bp_ref_items)
+          AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0
+          AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df().dropna(subset=["time", "value"])
+    feat = r["itemid"].map(dev.set_index("itemid")["role"].map(hourly.BP_ROLES))
+    ok = pd.Series(False, index=r.index)
+    for f in ("SysBP", "DiaBP"):
+        m = feat == f
+        ok[m] = hourly.within_limits(f, r.loc[m, "value"])
+    return r[ok.to_numpy()]
 
 
 def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
