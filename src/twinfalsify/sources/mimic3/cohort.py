@@ -964,6 +964,39 @@ def _urine_irrigant_counts(con) -> pd.Series:
         GROUP BY 1""").df().set_index("icustay_id")["n"]
 
 
+AUDIT_CHUNK = 5000  # stays per pass of ``_rule_counts``: bounded memory on the full database
+# the features whose rows a semantic rule sets aside (MAP check: MeanBP; venous gas: the
+# blood gases) or links by time (every lab)
+AUDIT_FEATURES = ("MeanBP", *hourly.LABS, "sofa_platelets", "sofa_bilirubin",
+                  "sofa_creatinine")
+
+
+def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.Series]:
+    """Per stay, the rows each semantic rule sets aside or links over the *whole stay*:
+    every charted row of the stay and every lab row of [INTIME - 1 d, OUTTIME + 1 d] any
+    step can read (window [INTIME - the longest hold, OUTTIME + 1 d], the lab window inside
+    it), not only the hourly window, so that a rule changing the SOFA window shows in the
+    audit: MAP check (``map_outside``), venous blood gas (``venous_gas``), labs linked by
+    time (``lab_by_time``), vasopressor rows in a unit no rule converts
+    (``vaso_unit_unknown``). Read in chunks of ``AUDIT_CHUNK`` stays."""
+    max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
+    parts: dict[str, list[pd.Series]] = {}
+    for c0 in range(0, len(allst), AUDIT_CHUNK):
+        st = allst.iloc[c0:c0 + AUDIT_CHUNK]
+        lo, hi = st["intime"] - max_hold * HOUR, st["outtime"] + LAB_WINDOW
+        counts: dict = {}
+        _events(con, st, lo, hi, AUDIT_FEATURES, opts, counts=counts)
+        _, _, mv_v, cv_v = _inputs(con, st.index, st["intime"], st["outtime"], opts.rewritten)
+        # vasopressor rows in a unit no conversion rule matches give no dose: counted
+        counts["vaso_unit_unknown"] = pd.concat(
+            [v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
+             for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)]
+            or [pd.Series(dtype="int64")]).value_counts()
+        for k, v in counts.items():
+            parts.setdefault(k, []).append(v)
+    return {k: pd.concat(v) for k, v in parts.items()}
+
+
 def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic3Options,
                        evidence: dict, ev_counts: dict, wd_inputs: dict
                        ) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -990,7 +1023,7 @@ def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic
 
 
 def _hours(con, allst: pd.DataFrame, crit: pd.DataFrame, t_max: int, anchor: str,
-           window_h: int, opts: Mimic3Options, ev_counts: dict) -> _Hours:
+           window_h: int, opts: Mimic3Options) -> _Hours:
     """Hourly blocks of every stay, anchored; the criteria ``anchor`` and
     ``stay_covers_window`` into ``crit``."""
     ids_all = allst.index
@@ -1003,7 +1036,7 @@ def _hours(con, allst: pd.DataFrame, crit: pd.DataFrame, t_max: int, anchor: str
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
     dropped: list = []
     ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts,
-                 dropped=dropped, counts=ev_counts)
+                 dropped=dropped)
     n_implausible = pd.concat(dropped)["icustay_id"].value_counts() if dropped else None
     # blood pressure completed per charting time, then hourly means and sample-and-hold of
     # charted and completed values alike (AI-Clinician's order)
@@ -1182,7 +1215,7 @@ def _missingness(raw: pd.DataFrame, after_hold_missing: pd.DataFrame, n: int, t_
 
 
 def _trajectories(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series, t_max: int,
-                  opts: Mimic3Options, ev_counts: dict, source: str) -> pd.DataFrame:
+                  opts: Mimic3Options, source: str) -> pd.DataFrame:
     """The cohort's trajectory rows: features, age, sex, the hour's doses, the patient."""
     ids = stays.index
     traj = held.reset_index()
@@ -1190,11 +1223,6 @@ def _trajectories(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series, t
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
     # doses on the same anchor: hour t of the doses is [t0 + t h, t0 + (t + 1) h)
     mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR, opts.rewritten)
-    # vasopressor rows in a unit no conversion rule matches give no dose: counted, not silent
-    unknown = pd.concat([v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
-                         for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)] or
-                        [pd.Series(dtype="int64")])
-    ev_counts["vaso_unit_unknown"] = unknown.value_counts()
     fl = doses.hourly_fluid(t0, mv_f, cv_f, t_max)
     va = doses.hourly_vasopressor(t0, mv_v, cv_v, t_max)
     key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
@@ -1220,7 +1248,8 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     ev_counts: dict = {}
     wd_inputs: dict = {}
     inf, sofa = _clinical_criteria(con, allst, crit, opts, evidence, ev_counts, wd_inputs)
-    hours = _hours(con, allst, crit, t_max, anchor, window_h, opts, ev_counts)
+    ev_counts.update(_rule_counts(con, allst, opts))
+    hours = _hours(con, allst, crit, t_max, anchor, window_h, opts)
     held, full = hours.held, hours.full
     wd, w_desc = _weight_documented(con, allst, held, t_max, opts)
     crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
@@ -1245,7 +1274,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     offset = hours.offset.reindex(ids)
     after_hold_missing = imputed.missing_after_hold.loc[ids]
     missingness = _missingness(raw, after_hold_missing, len(ids), t_max)
-    traj = _trajectories(con, stays, held, t0, t_max, opts, ev_counts,
+    traj = _trajectories(con, stays, held, t0, t_max, opts,
                          f"{layout.kind} extraction of {folder}")
     anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
@@ -1293,7 +1322,7 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     patient's own earlier weight (``n_own_weight_hours``: beyond the 72 h hold, or from an
     earlier stay), whether the weight imputed from another patient was implausible for the
     patient's height (``weight_imputed_implausible``: the stay fails ``imputable``), the
-    rows each semantic rule set aside in the extraction window (``counts``:
+    rows each semantic rule set aside over the whole stay (``counts``, from ``_rule_counts``:
     ``n_map_outside_range``, ...), and the imputed cells: weight hours and lab cells apart."""
     a = pd.DataFrame({schema.STAY_ID: allst.index.to_numpy("int64"),
                       "subject_id": allst["subject_id"].to_numpy(),
