@@ -134,15 +134,28 @@ def test_specimens_units_and_semantics(demo, preset):
     res = demo["first_vitals"]
     a = res.stays.set_index(schema.STAY_ID)
     mbp = res.trajectories.set_index([schema.STAY_ID, "t"])["MeanBP"]
-    # 221684: a MAP of 142 charted alone above the systolic 104 charted an hour before:
-    # deleted, hour 2 is 60.7 (completed from 94 / 44 at 18:03), not 101.3
-    assert a.loc[221684, "n_map_outside_range"] == 1
-    assert mbp.loc[(221684, 2)] == pytest.approx(60.67, abs=0.01)
-    # 217992: MAPs of 3 mmHg (a transducer zeroed) below the diastolic: hour 0 is 65.2, not 34.1
-    assert a.loc[217992, "n_map_outside_range"] == 2
+    # the MAP check compares a mean only with its own device's pressures of the same
+    # minute: over whole stays 30 MAPs in 21 stays (before: 142 in 43, 60 of them < 65
+    # mmHg, judged against the other device or readings up to 2 h old)
+    assert a["n_map_outside_range"].sum() == 30 and (a["n_map_outside_range"] > 0).sum() == 21
+    # 220671: the cuff's MAP of 37 charted alone at 01:00 stays (before: deleted below the
+    # cuff's diastolic 42 of 00:23): hour 2 is 61.3, not 85.7
+    assert mbp.loc[(220671, 2)] == pytest.approx(61.33, abs=0.01)
+    # 221684: a MAP of 142 charted alone, with no pressure of its device that minute, is not
+    # judged: hour 2 is (142 + 60.7) / 2
+    assert a.loc[221684, "n_map_outside_range"] == 0
+    assert mbp.loc[(221684, 2)] == pytest.approx(101.33, abs=0.01)
+    # 217992: arterial MAPs of 3 mmHg charted alone (a transducer zeroed) are below 5 mmHg:
+    # deleted as outliers, not by the check; hour 0 is 65.2, not 34.1, under either preset
+    assert a.loc[217992, "n_map_outside_range"] == 0
     assert mbp.loc[(217992, 0)] == pytest.approx(65.2, abs=0.05)
-    # venous and mixed-venous blood gases: their PaO2 / PaCO2 / pH are not arterial
-    assert a["n_venous_gas_rows"].sum() == 33
+    pm = preset.trajectories.set_index([schema.STAY_ID, "t"])["MeanBP"]
+    assert pm.loc[(217992, 0)] == pytest.approx(68.0)  # before: 24.7 = (68 + 3 + 3) / 3
+    # venous and mixed-venous blood gases: their PaO2 / PaCO2 / pH are not arterial;
+    # counted over whole stays (the hourly windows alone hold 33 of them); 272047, whose
+    # max SOFA they lower from 6 to 4, shows its 3 (before: 0, counted in the hourly window)
+    assert a["n_venous_gas_rows"].sum() == 162 and (a["n_venous_gas_rows"] > 0).sum() == 24
+    assert a.loc[272047, "n_venous_gas_rows"] == 3 and a.loc[272047, "max_sofa"] == 4
     # 290513's only culture is an MRSA screen: no suspected infection
     assert a.loc[290513, "n_screen_cultures"] == 1
     assert a.loc[290513, "infection_status"] != "onset"

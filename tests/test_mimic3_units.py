@@ -290,13 +290,66 @@ def test_norepinephrine_in_mg_per_kg_min_is_converted():
 def test_map_outside_diastolic_systolic_is_deleted():
     t = pd.Timestamp("2150-01-01 10:00")
     m = pd.Timedelta(minutes=1)
-    ev = pd.DataFrame({
-        "icustay_id": 1,
-        "time": [t, t, t, t + 60 * m, t + 66 * m, t + 90 * m, t + 200 * m, t + 400 * m],
-        "feature": ["SysBP", "DiaBP", "MeanBP", "MeanBP", "MeanBP", "MeanBP", "SysBP",
-                    "MeanBP"],
-        "value": [104.0, 60.0, 75.0, 142.0, 3.0, 60.0, 90.0, 95.0]})
-    bad = hourly.map_outside_range(ev)
-    # 142 > the systolic 104 charted before it, 3 < the diastolic 60; 60 and 75 lie within;
-    # the MAP of t + 400 min has a systolic 200 min old (> 2 h) and no diastolic: kept
-    assert bad.tolist() == [False, False, False, True, True, False, False, False]
+    # arterial line (MetaVision 220050 / 220051 / 220052) and cuff (220179 / 220180 / 220181)
+    refs = pd.DataFrame({"icustay_id": 1,
+                         "time": [t, t, t, t, t + 60 * m, t + 90 * m, t + 90 * m],
+                         "itemid": [220050, 220051, 220179, 220180, 220050, 220050, 220051],
+                         "value": [104.0, 60.0, 140.0, 90.0, 100.0, 0.0, 0.0]})
+    maps = pd.DataFrame({"icustay_id": 1,
+                         "time": [t, t, t, t, t + 60 * m, t + 61 * m, t + 90 * m, t],
+                         "itemid": [220052, 220052, 220181, 220052, 220052, 220052, 220052,
+                                    224322],
+                         "value": [75.0, 142.0, 95.0, 55.0, 100.0, 142.0, 95.0, 150.0]})
+    bad = hourly.map_outside_range(maps, refs)
+    # 75 within its line's 104 / 60; 142 above it; the cuff's 95 within 140 / 90; the
+    # arterial 55 below its own 60 (and the cuff's 90); 100 = its systolic alone: kept; 142
+    # a minute after the systolic 100: another time, kept; 95 beside a line at 0 / 0: kept;
+    # the IABP mean 150 has no device pressures: kept
+    assert bad.tolist() == [False, True, False, True, False, False, False, False]
+    # never deleted for falling below another device's diastolic: the cuff's 90 judges only
+    # the cuff's mean
+    only_cuff = refs[refs["itemid"].isin([220179, 220180])]
+    assert not hourly.map_outside_range(maps.iloc[[3]], only_cuff).any()
+
+
+def test_map_check_agrees_with_a_brute_force_loop():
+    """Random MAPs and references of two devices on a coarse time grid (many ties and
+    duplicates, integer values, missing diastolics, zeros, contradictory pairs): the
+    vectorised check equals a row-by-row reading of its definition."""
+    rng = np.random.default_rng(48)
+    n = 400
+    t = pd.Timestamp("2150-01-01 10:00") + pd.to_timedelta(rng.integers(0, 6, n), "min")
+    dev = {"a": (220050, 220051, 220052), "c": (220179, 220180, 220181)}
+    kind = rng.choice(["a", "c"], n)
+    role = rng.integers(0, 3, n)
+    item = np.array([dev[k][r] for k, r in zip(kind, role, strict=True)])
+    ev = pd.DataFrame({"icustay_id": rng.integers(1, 3, n), "time": t, "itemid": item,
+                       "value": rng.integers(0, 160, n).astype(float)})
+    maps, refs = ev[role == 2].reset_index(drop=True), ev[role < 2].reset_index(drop=True)
+    fast = hourly.map_outside_range(maps, refs)
+    slow = []
+    for _, q in maps.iterrows():
+        k = "a" if q["itemid"] == 220052 else "c"
+        same = refs[(refs["icustay_id"] == q["icustay_id"]) & (refs["time"] == q["time"])
+                    & (refs["value"] > 0)]
+        s = same.loc[same["itemid"] == dev[k][0], "value"]
+        d = same.loc[same["itemid"] == dev[k][1], "value"]
+        s = s.mean() if len(s) else np.nan
+        d = d.mean() if len(d) else np.nan
+        if np.isfinite(s) and np.isfinite(d) and s <= d:
+            slow.append(False)  # a contradictory pair judges nothing
+            continue
+        slow.append(bool((np.isfinite(s) and q["value"] > s)
+                         or (np.isfinite(d) and q["value"] < d)))
+    assert fast.tolist() == slow
+    assert 10 < sum(slow) < len(slow) - 10  # the draw exercises both outcomes
+
+
+def test_every_blood_pressure_item_has_a_device():
+    """A MeanBP item without a device would never be checked: bp_devices.csv lists every
+    SysBP, MeanBP and DiaBP item of items.csv, with the role of its feature."""
+    items = hourly.item_map()
+    bp = items[items["feature"].isin(hourly.BP)].set_index("itemid")["feature"]
+    dev = hourly.bp_devices().set_index("itemid")["role"].map(hourly.BP_ROLES)
+    assert bp.index.isin(dev.index).all(), sorted(set(bp.index) - set(dev.index))
+    assert (dev.reindex(bp.index) == bp).all()
