@@ -195,14 +195,23 @@ def test_map_check_reads_the_same_device_diastolic_under_bp_items_ai_clinician()
     assert a.loc[P[16], "n_map_outside_range"] == 4 and a.loc[P[18], "n_map_outside_range"] == 1
 
 
-def test_norepinephrine_units(cohort):
-    # P16: norepinephrine 0.0001 mg/kg/min over hours 1-2 is 0.1 ug/kg/min (before: dropped,
-    # 0); a row in mL/hr is counted
+def test_norepinephrine_units_and_dose_plausibility(cohort):
+    # P16: norepinephrine 0.0001 mg/kg/min (no PATIENTWEIGHT) over hours 1-2 is x 1000 =
+    # 0.1 ug/kg/min; 0.08 mg/kg/min with PATIENTWEIGHT 1 (mimic-code's mis-charted rows) is
+    # 0.08 ug/kg/min in hour 4; 0.08 mg/kg/min at 70 kg read x 1000 is 80 ug/kg/min: outside
+    # dose_limits.csv, dropped, so hour 0 has no vasopressor (before: an 80 ug/kg/min
+    # action); a 20,000 mL fluid row in hour 2 is dropped too; a row in mL/hr is counted
     s = _stay(cohort, P[16])
-    assert s["vasopressor"].tolist() == pytest.approx([0.0, 0.1, 0.1, 0.0, 0.0])
+    assert s["vasopressor"].tolist() == pytest.approx([0.0, 0.1, 0.1, 0.0, 0.08])
+    assert s["iv_fluid"].tolist() == [100.0, 0.0, 0.0, 0.0, 0.0]
     a = _audit(cohort)
     assert a.loc[P[16], "n_vaso_rows_unit_unknown"] == 1
-    assert a.loc[P[1], "n_vaso_rows_unit_unknown"] == 0
+    assert a.loc[P[16], "n_dose_rows_implausible"] == 2
+    assert (a.drop(P[16])[["n_vaso_rows_unit_unknown", "n_dose_rows_implausible"]] == 0).all(
+        axis=None)
+    # every action of every stay lies in the plausibility ranges
+    t = cohort.trajectories
+    assert t["vasopressor"].between(0, 5).all() and t["iv_fluid"].between(0, 10_000).all()
 
 
 def test_labs_and_cultures_without_admission_are_linked_by_time(cohort):

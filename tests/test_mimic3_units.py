@@ -16,10 +16,11 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 def test_data_tables_have_meaning_and_version():
     versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "3",
-                "sample_and_hold.csv": "2", "vasopressors.csv": "3", "fluids.csv": "1",
+                "sample_and_hold.csv": "2", "vasopressors.csv": "4", "fluids.csv": "1",
                 "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "3",
                 "withdrawal.csv": "1", "heights.csv": "1",
-                "specimens.csv": "1", "screens.csv": "1", "bp_devices.csv": "1"}
+                "specimens.csv": "1", "screens.csv": "1", "bp_devices.csv": "1",
+                "dose_limits.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name
@@ -278,13 +279,24 @@ def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
         assert np.isnan(fast[7]).all()
 
 
-def test_norepinephrine_in_mg_per_kg_min_is_converted():
-    # MIMIC-IV charts a few norepinephrine rates in mg/kg/min; before they were dropped (NaN)
-    ev = pd.DataFrame({"itemid": [221906, 221906, 221906], "rate": [0.1, 0.0001, 5.0],
-                       "rateuom": ["mcg/kg/min", "mg/kg/min", "mL/hr"]})
+def test_norepinephrine_in_mg_per_kg_min_as_the_cited_source():
+    # mimic-code norepinephrine.sql: mg/kg/min rows with patientweight = 1 are charted in the
+    # wrong unit and kept as mcg/kg/min; other mg/kg/min rows are x 1000
+    ev = pd.DataFrame({"itemid": [221906] * 5, "rate": [0.1, 0.0001, 5.0, 0.08, 0.08],
+                       "rateuom": ["mcg/kg/min", "mg/kg/min", "mL/hr", "mg/kg/min",
+                                   "mg/kg/min"],
+                       "patientweight": [70.0, np.nan, 70.0, 1.0, 70.0]})
     ne = doses.norepinephrine_equivalent(ev, "mv").to_numpy()
-    np.testing.assert_allclose(ne[:2], [0.1, 0.1])
+    np.testing.assert_allclose(ne[[0, 1, 3, 4]], [0.1, 0.1, 0.08, 80.0])
     assert np.isnan(ne[2])  # no rule for mL/hr: counted in the audit table
+    # without the column the weight-1 rule cannot match: x 1000
+    no_w = doses.norepinephrine_equivalent(ev.drop(columns="patientweight"), "mv").to_numpy()
+    assert no_w[3] == pytest.approx(80.0)
+    # the 80 is not a dose: outside dose_limits.csv; the bounds themselves are doses
+    ok = doses.dose_plausible(pd.Series([0.0, 5.0, 80.0, -0.1, np.nan]), "vasopressor")
+    assert ok.tolist() == [True, True, False, False, True]
+    ok = doses.dose_plausible(pd.Series([0, 10_000, 10_001, -1]), "iv_fluid")
+    assert ok.tolist() == [True, True, False, False]
 
 
 def test_map_outside_diastolic_systolic_is_deleted():

@@ -590,11 +590,14 @@ def _bp_references(con) -> pd.DataFrame:
     return r[ok.to_numpy()]
 
 
-def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
-            ) -> tuple[pd.DataFrame, ...]:
+def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude",
+            implausible: list | None = None) -> tuple[pd.DataFrame, ...]:
     """Fluid and vasopressor rows (MetaVision, CareVue) of stays ``ids`` overlapping [lo, hi].
     MetaVision 'Rewritten' rows are dropped (``rewritten="exclude"``) or, as AI-Clinician,
-    dropped for vasopressors only (``"ai_clinician"``)."""
+    dropped for vasopressors only (``"ai_clinician"``). A row whose dose is outside
+    dose_limits.csv (``doses.dose_plausible``) is dropped; ``implausible`` (a list), when
+    given, receives the stay ids of the dropped rows. PATIENTWEIGHT is read for
+    norepinephrine charted in the wrong unit (vasopressors.csv)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(), "hi": hi.reindex(ids).to_numpy()})
     con.register("win_in", win)
@@ -605,7 +608,8 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
     mv_sel = f"""SELECT w.icustay_id, CAST(m.ITEMID AS BIGINT) AS itemid,
                {_ts('m.STARTTIME')} AS starttime, {_ts('m.ENDTIME')} AS endtime,
                TRY_CAST(m.AMOUNT AS DOUBLE) AS amount, TRY_CAST(m.RATE AS DOUBLE) AS rate,
-               m.RATEUOM AS rateuom, coalesce(m.STATUSDESCRIPTION, '') AS status
+               m.RATEUOM AS rateuom, coalesce(m.STATUSDESCRIPTION, '') AS status,
+               TRY_CAST(m.PATIENTWEIGHT AS DOUBLE) AS patientweight
         FROM INPUTEVENTS_MV m JOIN win_in w ON CAST(m.ICUSTAY_ID AS BIGINT) = w.icustay_id
         WHERE {_ts('m.STARTTIME')} <= w.hi AND {_ts('m.ENDTIME')} >= w.lo"""
     cv_sel = f"""SELECT w.icustay_id, CAST(c.ITEMID AS BIGINT) AS itemid,
@@ -621,7 +625,17 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
              "TRUE" if rewritten == "ai_clinician" else not_rewritten)
     mv_v = q(mv_sel, "va_items", "rate", not_rewritten)
     cv_f, cv_v = q(cv_sel, "fl_items", "amount"), q(cv_sel, "va_items", "rate")
-    return mv_f, cv_f, mv_v, cv_v
+    out = []
+    for frame, action, system in ((mv_f, "iv_fluid", "mv"), (cv_f, "iv_fluid", "cv"),
+                                  (mv_v, "vasopressor", "mv"), (cv_v, "vasopressor", "cv")):
+        dose = (frame["amount"] if action == "iv_fluid"
+                else doses.norepinephrine_equivalent(frame, system)) if len(frame) else (
+            pd.Series(dtype=float))
+        ok = doses.dose_plausible(dose, action).to_numpy(bool)
+        if implausible is not None:
+            implausible.append(frame.loc[~ok, "icustay_id"])
+        out.append(frame[ok].reset_index(drop=True))
+    return tuple(out)
 
 
 SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
@@ -978,7 +992,8 @@ def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.
     it), not only the hourly window, so that a rule changing the SOFA window shows in the
     audit: MAP check (``map_outside``), venous blood gas (``venous_gas``), labs linked by
     time (``lab_by_time``), vasopressor rows in a unit no rule converts
-    (``vaso_unit_unknown``). Read in chunks of ``AUDIT_CHUNK`` stays."""
+    (``vaso_unit_unknown``), input rows with a dose outside dose_limits.csv
+    (``dose_implausible``; inputs over [INTIME, OUTTIME]). Read in chunks of ``AUDIT_CHUNK`` stays."""
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
     parts: dict[str, list[pd.Series]] = {}
     for c0 in range(0, len(allst), AUDIT_CHUNK):
@@ -986,7 +1001,10 @@ def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.
         lo, hi = st["intime"] - max_hold * HOUR, st["outtime"] + LAB_WINDOW
         counts: dict = {}
         _events(con, st, lo, hi, AUDIT_FEATURES, opts, counts=counts)
-        _, _, mv_v, cv_v = _inputs(con, st.index, st["intime"], st["outtime"], opts.rewritten)
+        dropped: list = []
+        _, _, mv_v, cv_v = _inputs(con, st.index, st["intime"], st["outtime"], opts.rewritten,
+                                   implausible=dropped)
+        counts["dose_implausible"] = pd.concat(dropped).value_counts()
         # vasopressor rows in a unit no conversion rule matches give no dose: counted
         counts["vaso_unit_unknown"] = pd.concat(
             [v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
@@ -1295,6 +1313,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
 # counts of rows set aside by a rule, per stay -> audit column
 AUDIT_COUNTS = {"map_outside": "n_map_outside_range",
                 "vaso_unit_unknown": "n_vaso_rows_unit_unknown",
+                "dose_implausible": "n_dose_rows_implausible",
                 "urine_irrigant": "n_urine_irrigant_rows",
                 "venous_gas": "n_venous_gas_rows",
                 "screens": "n_screen_cultures",
