@@ -365,3 +365,23 @@ def test_every_blood_pressure_item_has_a_device():
     dev = hourly.bp_devices().set_index("itemid")["role"].map(hourly.BP_ROLES)
     assert bp.index.isin(dev.index).all(), sorted(set(bp.index) - set(dev.index))
     assert (dev.reindex(bp.index) == bp).all()
+
+
+def test_urine_irrigant_subtracted_within_its_charting_time():
+    """GU irrigant in (227488) comes back in the urine charted with it (227489): subtracted
+    per charting time, never below 0 mL; a charting time with irrigant only is no urine."""
+    import duckdb
+
+    t = pd.Timestamp("2150-01-01 10:00")
+    rows = [(0.5, 227489, 100), (0.5, 227488, 300),  # 100 out, 300 in: 0, not -200
+            (1.0, 227489, 500), (1.0, 227488, 200),  # 300
+            (5.0, 227488, 1000),  # irrigant alone, block 1: no urine row (before: -1000)
+            (9.0, 40055, 50), (9.0, 40055, 50)]  # duplicates count (two rows): 100
+    out = pd.DataFrame({"ICUSTAY_ID": "1", "ITEMID": [str(r[1]) for r in rows],
+                        "CHARTTIME": [str(t + pd.Timedelta(hours=r[0])) for r in rows],
+                        "VALUE": [str(r[2]) for r in rows]})
+    con = duckdb.connect()
+    con.register("OUTPUTEVENTS", out)
+    u = cohort._urine(con, [1], pd.Series([t], index=[1]), 3)
+    assert u.to_dict() == {(1, 0): 300.0, (1, 2): 100.0}
+    assert (u >= 0).all()

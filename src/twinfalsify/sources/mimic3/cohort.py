@@ -680,7 +680,10 @@ BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirub
 def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
     """Urine output (mL) per 4 h block of [lo, lo + 4 n_blocks h): the sum of OUTPUTEVENTS
     rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly), the
-    GU irrigant put in (sign -1) subtracted;
+    GU irrigant put in (sign -1) subtracted within its own charting time (the irrigant
+    charted at a time comes back out in the urine charted then; mimic-code's
+    urine_output.sql sums per charting time too), never below 0 mL there: a charting time
+    with only irrigant is no urine row;
     blocks without a row are missing (AI-Clinician's nansum would make them 0 mL, i.e.
     4 renal points for any block where no urine was charted)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
@@ -691,12 +694,15 @@ def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
     # sign -1: GU irrigant volume in, subtracted (only a positive volume, as the MIMIC-IV
     # concept code), so that irrigation returned through the catheter is not urine
     u = con.execute(f"""
-        SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time,
-               CASE WHEN i.sign < 0 THEN -greatest(TRY_CAST(o.VALUE AS DOUBLE), 0)
-                    ELSE TRY_CAST(o.VALUE AS DOUBLE) END AS value
-        FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
-        JOIN uo_items i ON CAST(o.ITEMID AS BIGINT) = i.itemid
-        WHERE {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi""").df()
+        SELECT icustay_id, time, greatest(sum(value), 0) AS value FROM (
+            SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time, i.sign,
+                   CASE WHEN i.sign < 0 THEN -greatest(TRY_CAST(o.VALUE AS DOUBLE), 0)
+                        ELSE TRY_CAST(o.VALUE AS DOUBLE) END AS value
+            FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
+            JOIN uo_items i ON CAST(o.ITEMID AS BIGINT) = i.itemid
+            WHERE {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi)
+        WHERE value IS NOT NULL AND time IS NOT NULL
+        GROUP BY icustay_id, time HAVING max(sign) > 0""").df()
     u = u.dropna()
     blk = ((u["time"].to_numpy() - lo.reindex(u["icustay_id"]).to_numpy()) // (4 * HOUR))
     return u.assign(blk=blk.astype("int64")).groupby(["icustay_id", "blk"])["value"].sum()
