@@ -385,3 +385,25 @@ def test_urine_irrigant_subtracted_within_its_charting_time():
     u = cohort._urine(con, [1], pd.Series([t], index=[1]), 3)
     assert u.to_dict() == {(1, 0): 300.0, (1, 2): 100.0}
     assert (u >= 0).all()
+
+
+def test_own_earlier_weight_lower_median_and_age_bound(monkeypatch):
+    """The patient's own earlier weight: the lower median of the last three plausible ones
+    charted before the hour, at most 90 days old; never the mean of two."""
+    t = pd.Timestamp("2150-01-01 10:00")
+    d = pd.Timedelta(days=1)
+    w = pd.DataFrame({"subject_id": [1, 1, 2, 3, 3, 3, 4, 5, 5],
+                      "time": [t - 10 * d, t - 5 * d, t - 91 * d, t - 3 * d, t - 2 * d,
+                               t - d, t, t - 100 * d, t - 2 * d],
+                      "weight": [70.0, 234.0, 60.0, 64.6, 263.2, 65.0, 80.0, 50.0, 55.0]})
+    monkeypatch.setattr(cohort, "patient_weights", lambda con, stays, subjects: w)
+    stays = pd.DataFrame({"subject_id": [1, 2, 3, 4, 5]}, index=[11, 12, 13, 14, 15])
+    held = pd.DataFrame({"weight": np.nan},
+                        index=pd.MultiIndex.from_product([[11, 12, 13, 14, 15], [0]],
+                                                         names=["icustay_id", "t"]))
+    t0 = pd.Series(t, index=stays.index)
+    got = cohort.own_earlier_weight(None, stays, held, t0).droplevel(1).to_dict()
+    # 11: 70 and 234 give 70 (before: their mean, 152); 12: 91 days old, none; 13: 65 (the
+    # median of 64.6, 263.2, 65); 14: charted at the hour's start, not before it; 15: the
+    # 50 kg of 100 days before is out of the bound, 55 alone
+    assert got == {11: 70.0, 13: 65.0, 15: 55.0}

@@ -391,15 +391,27 @@ def patient_weights(con, stays: pd.DataFrame, subjects) -> pd.DataFrame:
             .rename(columns={"value": "weight"}))
 
 
+OWN_WEIGHT_MAX_AGE = pd.Timedelta(days=90)  # see own_earlier_weight
+
+
 def own_earlier_weight(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series
                        ) -> pd.Series:
-    """For each (icustay_id, t) of ``held`` without a weight: the median of the patient's
-    last three weights (``patient_weights``, each instant averaged) charted strictly before
-    the hour's start t0 + t h, in this stay or an earlier one, however long before (a body
-    weight changes slowly; the patient's own is a better estimate than another patient's).
-    The median of three, not the last value, so that one mis-charted weight is not carried
-    for months: 210164 charts 64.6 kg, then 263.2 kg the next day (no height known by then
-    to reject it); its patient's next stay, 281609, starts from 64.6 kg, not 263.2.
+    """For each (icustay_id, t) of ``held`` without a weight: the lower median of the
+    patient's last three plausible weights (``patient_weights``: outliers and weights
+    implausible for the height already deleted, each instant averaged) charted strictly
+    before the hour's start t0 + t h and at most ``OWN_WEIGHT_MAX_AGE`` (90 days) before it,
+    in this stay or an earlier one (a body weight changes slowly; the patient's own is a
+    better estimate than another patient's).
+
+    The median of three, not the last value, so that one mis-charted weight is not carried:
+    210164 charts 64.6 kg, then 263.2 kg the next day (no height known by then to reject it);
+    its patient's next stay, 281609, starts from 64.6 kg, not 263.2. The *lower* median, so
+    that the result is always a charted weight, never the mean of two disagreeing ones (70 kg
+    and a mis-charted 234 "kg" give 70, not 152): a unit error (pounds in a kg item) makes a
+    weight too high, not too low. At most 90 days old: critical illness and the months
+    around it change the weight by more than the imputation's error (a patient loses muscle
+    mass by the week in the ICU), and 90 days is the horizon of the outcome the project
+    reads (90-day mortality); an older weight leaves the hour to the donor imputation.
     Returns the filled cells only."""
     miss = held.index[held["weight"].isna().to_numpy()]
     if not len(miss):
@@ -410,13 +422,27 @@ def own_earlier_weight(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Seri
     w = patient_weights(con, stays, k["subject_id"].unique())
     if w.empty:
         return pd.Series(dtype=float, name="weight")
-    w = w.sort_values(["subject_id", "time"], kind="stable")
-    w["weight"] = (w.groupby("subject_id")["weight"]
-                   .transform(lambda s: s.rolling(3, min_periods=1).median()))
+    w = w.sort_values(["subject_id", "time"], kind="stable").reset_index(drop=True)
+    w["pos"] = np.arange(len(w))
     hit = pd.merge_asof(k.sort_values("start", kind="stable"),
-                        w.rename(columns={"time": "start"}).sort_values("start"),
+                        w.rename(columns={"time": "start"})[["subject_id", "start", "pos"]]
+                        .sort_values("start", kind="stable"),
                         on="start", by="subject_id", allow_exact_matches=False,
-                        direction="backward").dropna(subset=["weight"])
+                        direction="backward").dropna(subset=["pos"])
+    last = hit["pos"].to_numpy("int64")
+    subj, times, kg = (w["subject_id"].to_numpy(), w["time"].to_numpy("datetime64[ns]"),
+                       w["weight"].to_numpy(float))
+    oldest = hit["start"].to_numpy("datetime64[ns]") - OWN_WEIGHT_MAX_AGE.to_timedelta64()
+    cand = np.full((len(hit), 3), np.nan)
+    for j in range(3):  # the last three, same patient, within the age bound
+        p = last - j
+        ok = p >= 0
+        ok[ok] &= (subj[p[ok]] == hit["subject_id"].to_numpy()[ok]) & (times[p[ok]] >= oldest[ok])
+        cand[ok, j] = kg[p[ok]]
+    n = np.isfinite(cand).sum(axis=1)
+    srt = np.sort(cand, axis=1)  # NaN last
+    val = np.where(n > 0, srt[np.arange(len(hit)), np.maximum(n - 1, 0) // 2], np.nan)
+    hit = hit.assign(weight=val).dropna(subset=["weight"])
     return pd.Series(hit["weight"].to_numpy(), name="weight",
                      index=pd.MultiIndex.from_frame(hit[["icustay_id", "t"]])).sort_index()
 
