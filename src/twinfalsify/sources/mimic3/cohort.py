@@ -1025,7 +1025,8 @@ def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.
     audit: MAP check (``map_outside``), venous blood gas (``venous_gas``), labs linked by
     time (``lab_by_time``), vasopressor rows in a unit no rule converts
     (``vaso_unit_unknown``), input rows with a dose outside dose_limits.csv
-    (``dose_implausible``; inputs over [INTIME, OUTTIME]). Read in chunks of ``AUDIT_CHUNK`` stays."""
+    (``dose_implausible``; inputs over [INTIME, OUTTIME]). Read in chunks of
+    ``AUDIT_CHUNK`` stays."""
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
     parts: dict[str, list[pd.Series]] = {}
     for c0 in range(0, len(allst), AUDIT_CHUNK):

@@ -39,7 +39,8 @@ def convert_values(ev: pd.DataFrame) -> pd.DataFrame:
     """Apply unit conversions and AI-Clinician's temperature / FiO2 fixes.
 
     ``ev`` has icustay_id, time, itemid, source, value (raw VALUENUM). Returns icustay_id,
-    time, itemid, feature, value in contract units. Conversion: value_out = (value + offset) * scale.
+    time, itemid, feature, value in contract units. Conversion:
+    value_out = (value + offset) * scale.
     Temperature: a Celsius-item value > 70 is taken as Fahrenheit, a Fahrenheit-item value
     in (25, 45) as Celsius (AI-Clinician's 'recorded in the wrong column' fix).
     FiO2: percent-item values < 1 are fractions (x 100).
