@@ -99,6 +99,9 @@ ITEM_LISTS: tuple[ItemList, ...] = (
               227489)),
     ItemList("cultures (chart items)", "cultures.csv", None, "CHARTEVENTS",
              "AI-Clinician culture query"),
+    ItemList("blood-pressure devices (MAP check)", "bp_devices.csv", None, "CHARTEVENTS",
+             "project: the device of each pressure item (D_ITEMS labels), so that a MAP is "
+             "checked against its own device's systolic and diastolic"),
     ItemList("blood-gas specimen", "specimens.csv", None, "LABEVENTS",
              f"{MC4}measurement/bg.sql (52033); MIMIC-III 50800"),
 )
