@@ -15,9 +15,9 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 
 def test_data_tables_have_meaning_and_version():
-    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "3",
-                "sample_and_hold.csv": "2", "vasopressors.csv": "4", "fluids.csv": "1",
-                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "3",
+    versions = {"items.csv": "3", "unit_conversions.csv": "1", "outlier_limits.csv": "3",
+                "sample_and_hold.csv": "2", "vasopressors.csv": "5", "fluids.csv": "1",
+                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "4",
                 "withdrawal.csv": "1", "heights.csv": "1",
                 "specimens.csv": "1", "screens.csv": "1", "bp_devices.csv": "1",
                 "dose_limits.csv": "1"}

@@ -201,14 +201,17 @@ def _link_by_time(ev: pd.DataFrame, stays: pd.DataFrame) -> tuple[pd.DataFrame, 
 
 
 def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
-                        evidence: dict | None = None) -> pd.DataFrame:
+                        evidence: dict | None = None, screens: str = "exclude"
+                        ) -> pd.DataFrame:
     """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
     Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
     PRESCRIPTIONS.ICUSTAY_ID when given. Cultures: MICROBIOLOGYEVENTS rows (time =
     CHARTTIME, else CHARTDATE) and CHARTEVENTS rows of the culture items of cultures.csv
     (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``
-    (``event_stay``: the rule when several stays of the admission qualify).
+    (``event_stay``: the rule when several stays of the admission qualify). Screening swabs
+    (screens.csv) are no cultures (``screens="exclude"``) or count as cultures
+    (``"count"``, AI-Clinician); ``evidence["screens"]`` counts them per stay either way.
     Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
     decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
     culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def). An onset
@@ -254,8 +257,9 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
     micro_all, by_time = _link_by_time(micro_all, stays)
     micro_all = micro_all.assign(_by_time=by_time).drop(columns="subject_id")
     micro_all = micro_all[micro_all["hadm_id"].notna()]
-    micro = micro_all[~micro_all["screen"].astype(bool)].drop(columns="screen")
-    screens = micro_all[micro_all["screen"].astype(bool)].drop(columns=["screen", "_by_time"])
+    is_screen = micro_all["screen"].astype(bool)
+    micro = (micro_all[~is_screen] if screens == "exclude" else micro_all).drop(columns="screen")
+    screen_rows = micro_all[is_screen].drop(columns=["screen", "_by_time"])
     con.register("cult_items", data_table("cultures.csv")[["itemid"]].astype("int64"))
     chart = con.execute(f"""
         SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
@@ -274,7 +278,7 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
         evidence["culture_by_time"] = (
             _assign_to_stays(linked.drop(columns="_by_time"), stays, event_stay)["icustay_id"]
             .value_counts() if len(linked) else pd.Series(dtype="int64"))
-        scr_rows = screens[screens["time"].notna()]
+        scr_rows = screen_rows[screen_rows["time"].notna()]
         evidence["screens"] = (_assign_to_stays(scr_rows, stays, event_stay)["icustay_id"]
                                .value_counts() if len(scr_rows) else pd.Series(dtype="int64"))
     rows = {}
@@ -474,13 +478,16 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
     same device charted at the same time is deleted (``hourly.map_outside_range``, references
     from ``_bp_references``; ``counts["map_outside"]`` receives the rows per stay when
     ``counts`` is given). ``opts``: the item switches
-    (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
+    (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``; fio2_lab: the
+    blood-gas FiO2 read or not; venous_gas: venous blood gases deleted or kept)."""
     opts = opts or Mimic3Options()
     wanted = tuple(features)
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
     if opts.bp_items == "ai_clinician":
         items = items[~items["itemid"].isin(MEASURED_DIASTOLIC)]
+    if opts.fio2_lab == "ignore":  # AI-Clinician: the charted FiO2 only, no blood-gas FiO2
+        items = items[~((items["feature"] == "sofa_fio2") & (items["source"] == "labevents"))]
     win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
                         "hadm_id": stays["hadm_id"].to_numpy(),
                         "subject_id": stays["subject_id"].to_numpy(),
@@ -525,7 +532,7 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
     le = le.drop(columns="by_time")
     gas = set(items.loc[(items["source"] == "labevents")
                         & items["feature"].isin(BLOOD_GAS), "itemid"].astype("int64"))
-    if gas and len(le):
+    if gas and len(le) and opts.venous_gas == "exclude":
         # a blood gas drawn from venous blood is not an arterial one (specimens.csv)
         con.register("spec_rules", data_table("specimens.csv")[["itemid", "value", "arterial"]])
         ven = con.execute(f"""
@@ -703,7 +710,19 @@ BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirub
                   "sofa_creatinine")
 
 
-def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
+def urine_items(opts: Mimic3Options | None = None) -> pd.DataFrame:
+    """The rows of urine.csv read under ``opts``: a row whose ``read_when`` names a switch
+    and a value (``urine_irrigant=subtract``, ``tf_residual=count``) only when that switch
+    has that value."""
+    opts = opts or Mimic3Options()
+    u = data_table("urine.csv")
+    cond = u["read_when"].fillna("").astype(str).str.strip()
+    keep = [not c or getattr(opts, c.split("=")[0]) == c.split("=")[1] for c in cond]
+    return u[np.asarray(keep, dtype=bool)]
+
+
+def _urine(con, ids, lo: pd.Series, n_blocks: int,
+           opts: Mimic3Options | None = None) -> pd.Series:
     """Urine output (mL) per 4 h block of [lo, lo + 4 n_blocks h): the sum of OUTPUTEVENTS
     rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly), the
     GU irrigant put in (sign -1) subtracted within its own charting time (the irrigant
@@ -711,12 +730,13 @@ def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
     urine_output.sql sums per charting time too), never below 0 mL there: a charting time
     with only irrigant is no urine row;
     blocks without a row are missing (AI-Clinician's nansum would make them 0 mL, i.e.
-    4 renal points for any block where no urine was charted)."""
+    4 renal points for any block where no urine was charted). ``opts``: which items
+    (``urine_items``: the irrigant and the tube-feed residual are switches)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(),
                         "hi": (lo + 4 * n_blocks * HOUR).reindex(ids).to_numpy()})
     con.register("win_uo", win)
-    con.register("uo_items", data_table("urine.csv")[["itemid", "sign"]].astype("int64"))
+    con.register("uo_items", urine_items(opts)[["itemid", "sign"]].astype("int64"))
     # sign -1: GU irrigant volume in, subtracted (only a positive volume, as the MIMIC-IV
     # concept code), so that irrigation returned through the catheter is not urine
     u = con.execute(f"""
@@ -785,7 +805,7 @@ def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
         if c not in b:
             b[c] = np.nan
     if opts.sofa == "ai_clinician":
-        b["uo"] = _urine(con, ids, lo, n_blocks).reindex(idx).to_numpy()
+        b["uo"] = _urine(con, ids, lo, n_blocks, opts).reindex(idx).to_numpy()
     if carry not in CARRY:
         raise ValueError(f"block_sofa: carry must be one of {CARRY}, got {carry!r}")
     if carry == "hold":
@@ -1000,14 +1020,24 @@ class _Imputed:
     n_weight_hours: int  # stay-hours with a weight imputed
 
 
-def _urine_irrigant_counts(con) -> pd.Series:
-    """Per stay: the OUTPUTEVENTS rows of a GU irrigant (subtracted from the urine output)."""
-    neg = data_table("urine.csv").query("sign < 0")[["itemid"]].astype("int64")
-    con.register("uo_neg", neg)
-    return con.execute("""
-        SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
-        WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_neg)
-        GROUP BY 1""").df().set_index("icustay_id")["n"]
+def _urine_rule_counts(con, opts: Mimic3Options) -> dict[str, pd.Series]:
+    """Per stay, over the whole stay: the OUTPUTEVENTS rows of a GU irrigant subtracted from
+    the urine output (``urine_irrigant``; 0 under ``ignore``) and the tube-feed residual rows
+    left out of it (``tf_residual``; 0 under ``count``)."""
+    read = set(urine_items(opts)["itemid"].astype("int64"))
+    u = data_table("urine.csv")
+    neg = u.loc[(u["sign"] < 0) & u["itemid"].isin(read), ["itemid"]].astype("int64")
+    # urine items of AI-Clinician's list left out (tf_residual = exclude: 227510)
+    left = u.loc[(u["sign"] > 0) & ~u["itemid"].isin(read), ["itemid"]].astype("int64")
+
+    def count(items: pd.DataFrame) -> pd.Series:
+        con.register("uo_rule", items)
+        return con.execute("""
+            SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
+            WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_rule)
+            GROUP BY 1""").df().set_index("icustay_id")["n"]
+    return {"urine_irrigant": count(neg),
+            "tf_residual": count(left)}
 
 
 AUDIT_CHUNK = 5000  # stays per pass of ``_rule_counts``: bounded memory on the full database
@@ -1024,7 +1054,8 @@ def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.
     it), not only the hourly window, so that a rule changing the SOFA window shows in the
     audit: MAP check (``map_outside``), venous blood gas (``venous_gas``), labs linked by
     time (``lab_by_time``), vasopressor rows in a unit no rule converts
-    (``vaso_unit_unknown``), input rows with a dose outside dose_limits.csv
+    (``vaso_unit_unknown``), rows of a vasopressor item read but not converted
+    (``vaso_not_converted``: angiotensin II), input rows with a dose outside dose_limits.csv
     (``dose_implausible``; inputs over [INTIME, OUTTIME]). Read in chunks of
     ``AUDIT_CHUNK`` stays."""
     max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
@@ -1038,11 +1069,17 @@ def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.
         _, _, mv_v, cv_v = _inputs(con, st.index, st["intime"], st["outtime"], opts.rewritten,
                                    implausible=dropped)
         counts["dose_implausible"] = pd.concat(dropped).value_counts()
-        # vasopressor rows in a unit no conversion rule matches give no dose: counted
+        # vasopressor rows in a unit no conversion rule matches give no dose: counted; rows
+        # of an item read but not converted (angiotensin II) apart
+        nc = doses.not_converted_items()
+        none = [pd.Series(dtype="int64")]
         counts["vaso_unit_unknown"] = pd.concat(
-            [v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
-             for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)]
-            or [pd.Series(dtype="int64")]).value_counts()
+            [v.loc[doses.norepinephrine_equivalent(v, sysname).isna()
+                   & ~v["itemid"].isin(nc), "icustay_id"]
+             for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)] or none).value_counts()
+        counts["vaso_not_converted"] = pd.concat(
+            [v.loc[v["itemid"].isin(nc), "icustay_id"] for v in (mv_v, cv_v) if len(v)]
+            or none).value_counts()
         for k, v in counts.items():
             parts.setdefault(k, []).append(v)
     return {k: pd.concat(v) for k, v in parts.items()}
@@ -1055,14 +1092,15 @@ def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic
     ``crit``; returns the suspected infections and the max SOFA (for the audit)."""
     ids_all = allst.index
     crit["adult"] = (allst["age"] >= 18).to_numpy()
-    inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence)
+    inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence,
+                              screens=opts.screens)
     crit["suspected_infection"] = inf["in_window"].reindex(ids_all).fillna(False).astype(bool)
     has_onset = inf.index[inf["in_window"].to_numpy()]
     sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
             if len(has_onset) else pd.DataFrame(columns=["max_sofa", "sofa_organs"]))
     crit["sofa_ge_2"] = (sofa["max_sofa"] >= 2).reindex(ids_all).astype("boolean")
-    if opts.sofa == "ai_clinician":  # urine output read: irrigant rows subtracted, counted
-        ev_counts["urine_irrigant"] = _urine_irrigant_counts(con)
+    if opts.sofa == "ai_clinician":  # urine output read: irrigant and residual rows counted
+        ev_counts.update(_urine_rule_counts(con, opts))
     crit["mortality_documented"] = allst["hospital_expire_flag"].isin([0, 1]).to_numpy()
     documented = con.execute("""
         SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
@@ -1346,8 +1384,10 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
 # counts of rows set aside by a rule, per stay -> audit column
 AUDIT_COUNTS = {"map_outside": "n_map_outside_range",
                 "vaso_unit_unknown": "n_vaso_rows_unit_unknown",
+                "vaso_not_converted": "n_vaso_rows_not_converted",
                 "dose_implausible": "n_dose_rows_implausible",
                 "urine_irrigant": "n_urine_irrigant_rows",
+                "tf_residual": "n_urine_tf_residual_rows",
                 "venous_gas": "n_venous_gas_rows",
                 "screens": "n_screen_cultures",
                 "lab_by_time": "n_labs_linked_by_time",

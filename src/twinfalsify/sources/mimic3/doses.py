@@ -41,7 +41,7 @@ def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
     rate * factor / weight_divisor, with the first matching row of vasopressors.csv (lowest
     priority number; rateuom '*' matches any unit; min_rate_exclusive: the row needs
     rate > it; patientweight_eq: the row needs that PATIENTWEIGHT, so it never matches
-    events without the column).
+    events without the column; a row without a factor converts nothing: NaN).
     """
     rules = data_table("vasopressors.csv")
     rules = rules[rules["system"] == system].sort_values("priority", kind="stable")
@@ -50,6 +50,8 @@ def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
     uom = events["rateuom"].astype("string").str.strip()
     item = events["itemid"].astype("int64")
     for _, r in rules.iterrows():
+        if pd.isna(r["factor"]):  # read, not converted (not_converted_items)
+            continue
         m = (item == int(r["itemid"])) & out.isna() & rate.notna()
         if r["rateuom"] != "*":
             m &= uom == r["rateuom"]
@@ -62,6 +64,13 @@ def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
         div = 1.0 if pd.isna(r["weight_divisor"]) else float(r["weight_divisor"])
         out[m] = rate[m] * float(r["factor"]) / div
     return out
+
+
+def not_converted_items() -> frozenset[int]:
+    """Vasopressor items read but not converted (vasopressors.csv rows without a factor:
+    MIMIC-IV's angiotensin II): their rows give no dose and are counted per stay."""
+    rules = data_table("vasopressors.csv")
+    return frozenset(rules.loc[rules["factor"].isna(), "itemid"].astype("int64"))
 
 
 def dose_plausible(values: pd.Series, action: str) -> pd.Series:
