@@ -211,6 +211,16 @@ def test_renal_sofa_from_urine_output():
     assert cohort.sofa_components(b)["renal"].tolist() == [0, 3, 4, 4]
 
 
+def test_cardiovascular_sofa_reads_the_rate_to_3_decimals():
+    """Demo 265505 (norepinephrine 0.100103647 ug/kg/min) and 298685 (dopamine
+    10.0079767 ug/kg/min x 0.01) score 3 points, as the ordered 0.1 / 10 do (SOFA: dopamine
+    5-15 is 3 points); 0.1006 reads 0.101: 4."""
+    b = pd.DataFrame({c: [np.nan] * 4 for c in ("pf", "sofa_platelets", "sofa_bilirubin",
+                                                 "MeanBP", "sofa_gcs", "sofa_creatinine")})
+    b["vaso"] = [0.100103647, 10.0079767 * 0.01, 0.1006, 0.05]
+    assert cohort.sofa_components(b)["cardiovascular"].tolist() == [3, 3, 4, 3]
+
+
 @pytest.mark.parametrize("system,item,rate,uom,expected", [
     ("mv", 221906, 0.2, "mcg/kg/min", 0.2),
     ("mv", 221906, 16, "mcg/min", 0.2),  # / 80 kg

@@ -671,6 +671,7 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude",
     return tuple(out)
 
 
+VASO_DECIMALS = 3  # SOFA reads the norepinephrine-equivalent rate to 3 decimals (sofa_components)
 SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
 
 
@@ -679,7 +680,7 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
     thresholds; columns ``SOFA_ORGANS``.
 
     Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
-    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max), sofa_gcs,
+    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max; read to 3 decimals), sofa_gcs,
     sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
     charted, no points). Ventilation is not used.
     """
@@ -689,7 +690,12 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
             out = np.where(np.asarray(c, dtype=bool), p, out)  # later (worse) wins
         return out
     pf, plt, bil = b["pf"], b["sofa_platelets"], b["sofa_bilirubin"]
-    mapp, vaso, gcs, cr = b["MeanBP"], b["vaso"].fillna(0), b["sofa_gcs"], b["sofa_creatinine"]
+    # the rate compared with the 0.1 ug/kg/min threshold to 3 decimals, as AI-Clinician's
+    # vasopressor queries standardise it (round(rate_std, 3)): MetaVision charts the rate its
+    # pump computed, e.g. norepinephrine 0.100104 or dopamine 10.008 (x 0.01 = 0.10008) for an
+    # ordered 0.1 / 10, which scored 4 points instead of SOFA's 3 (dopamine 5-15: 3 points)
+    mapp, gcs, cr = b["MeanBP"], b["sofa_gcs"], b["sofa_creatinine"]
+    vaso = b["vaso"].fillna(0).round(VASO_DECIMALS)
     uo = b["uo"] if "uo" in b else pd.Series(np.nan, index=b.index)
     return pd.DataFrame({
         "respiration": pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100]),
