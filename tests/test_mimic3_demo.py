@@ -32,8 +32,8 @@ COUNTS = {
     "first_vitals": [136, 135, 85, 72, 72, 70, 67, 65, 65, 63, 61, 61, 61],
 }
 COUNTS_AI_CLINICIAN = {
-    "intime": [136, 135, 85, 70, 70, 68, 65, 65, 65, 63, 21, 21, 21],
-    "first_vitals": [136, 135, 85, 70, 70, 68, 65, 63, 63, 61, 59, 59, 59],
+    "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 21, 21, 21],
+    "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 60, 60, 60],
 }
 
 
@@ -110,7 +110,9 @@ def test_sofa_components_held_only_for_their_hold_time(preset, demo):
     # 228977 stays excluded there
     assert a.loc[228977, "excluded_at"] == "not_withdrawn"
     p = demo["first_vitals"].stays.set_index(schema.STAY_ID)
-    assert p.loc[239935, "max_sofa"] == 9 and p.loc[273347, "max_sofa"] == 5
+    # defaults: 239935's maximum block had norepinephrine 0.100053, read to 3 decimals 0.1
+    # (cardiovascular 3, not 4): 8
+    assert p.loc[239935, "max_sofa"] == 8 and p.loc[273347, "max_sofa"] == 5
 
 
 def test_own_earlier_weight_before_a_donor(demo):
@@ -159,9 +161,27 @@ def test_specimens_units_and_semantics(demo, preset):
     # 290513's only culture is an MRSA screen: no suspected infection
     assert a.loc[290513, "n_screen_cultures"] == 1
     assert a.loc[290513, "infection_status"] != "onset"
-    # GU irrigant in (227488) is subtracted from the urine output read by sofa: ai_clinician
+    # the preset applies none of the three rules (AI-Clinician does not): the irrigant is not
+    # read (counted 0), the venous gases kept, 290513's MRSA screen a culture
     p = preset.stays.set_index(schema.STAY_ID)
-    assert p["n_urine_irrigant_rows"].sum() == 97 and a["n_urine_irrigant_rows"].sum() == 0
+    assert p["n_urine_irrigant_rows"].sum() == 0 and a["n_urine_irrigant_rows"].sum() == 0
+    assert p["n_venous_gas_rows"].sum() == 0 and p.loc[272047, "max_sofa"] == 6
+    assert p.loc[290513, "infection_status"] == "onset" and p.loc[290513, "in_cohort"]
+    # the SOFA reads the vasopressor rate to 3 decimals: 265505's norepinephrine 0.100104 and
+    # 298685's dopamine 10.008 (x 0.01) score 3 cardiovascular points, not 4
+    assert p.loc[265505, "max_sofa"] == 7 and p.loc[298685, "max_sofa"] == 8
+    assert "cardiovascular=3" in p.loc[298685, "sofa_organs"]
+
+
+def test_preset_irrigant_subtracted_when_switched_on():
+    """GU irrigant in (227488) is subtracted from the urine output read by sofa:
+    ai_clinician when urine_irrigant is subtract; the tube-feed residual rows are counted
+    where they are left out."""
+    from dataclasses import replace
+    opts = replace(PRESETS["ai_clinician"], urine_irrigant="subtract", tf_residual="exclude")
+    a = extract_mimic3(DEMO, options=opts).stays.set_index(schema.STAY_ID)
+    assert a["n_urine_irrigant_rows"].sum() == 97
+    assert a["n_urine_tf_residual_rows"].sum() == 142  # of 143 rows, one without a stay
 
 
 def test_docs_consort_table_equals_the_extraction_counts():

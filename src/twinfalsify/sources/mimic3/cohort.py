@@ -680,8 +680,8 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
     thresholds; columns ``SOFA_ORGANS``.
 
     Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
-    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max; read to 3 decimals), sofa_gcs,
-    sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
+    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max; read to 3 decimals),
+    sofa_gcs, sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
     charted, no points). Ventilation is not used.
     """
     def pts(conds):
