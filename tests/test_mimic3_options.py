@@ -115,7 +115,7 @@ def test_ai_clinician_preset_end_to_end(base):
     np.testing.assert_allclose(_stay(res, 200001)["iv_fluid"], [1125, 250, 125, 500, 0])
 
 
-# --- the switches of the rules that depart from AI-Clinician (issue 48, item 2) ---------
+# --- the switches of the rules that depart from AI-Clinician -------------------------
 
 PAT = Path(__file__).resolve().parent / "fixtures" / "mimic3-patients"
 NEW_SWITCHES = {"venous_gas": ("exclude", "keep"), "screens": ("exclude", "count"),
