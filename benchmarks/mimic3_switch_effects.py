@@ -9,8 +9,14 @@ charted or held cells apart from 1-NN imputed ones (whose donors are the cohort'
 they move whenever the cohort does).
 This is the "demo effect" column of docs/how-to/mimic3.md's switch table.
 
+``--preset-sofa``: instead, under the ``ai_clinician`` preset, the max SOFA of every stay with
+an onset with each switch in ``--keys`` turned to the project's value alone, and with all of
+them at once: the stays whose max SOFA changes, per switch (docs/how-to/mimic3.md, "The
+rules as switches under the preset").
+
 Run:  PYTHONPATH=src python benchmarks/mimic3_switch_effects.py MIMIC3_DIR
       [--anchor first_vitals] [--threads 2]
+      [--preset-sofa [--keys venous_gas screens urine_irrigant tf_residual fio2_lab]]
 """
 
 from __future__ import annotations
@@ -23,7 +29,9 @@ import pandas as pd
 
 from twinfalsify import schema
 from twinfalsify.sources.mimic3 import extract_mimic3
-from twinfalsify.sources.mimic3.options import CHOICES, Mimic3Options
+from twinfalsify.sources.mimic3.options import CHOICES, PRESETS, Mimic3Options
+
+RULE_KEYS = ("venous_gas", "screens", "urine_irrigant", "tf_residual", "fio2_lab")
 
 
 def _imputed_flags(res) -> pd.DataFrame:
@@ -94,17 +102,59 @@ def effect(base, alt) -> str:
     return "; ".join(parts)
 
 
+def max_sofa_changes(base, alt) -> list[tuple[int, float, float]]:
+    """(stay, max SOFA in ``base``, in ``alt``) for every stay whose max SOFA differs (a stay
+    with an onset in only one of them: NaN on the other side)."""
+    a = base.stays.set_index(schema.STAY_ID)["max_sofa"].astype(float)
+    b = alt.stays.set_index(schema.STAY_ID)["max_sofa"].astype(float)
+    both = a.index.union(b.index)
+    a, b = a.reindex(both), b.reindex(both)
+    diff = ~(np.isclose(a, b) | (a.isna() & b.isna()))
+    return [(int(i), float(a[i]), float(b[i])) for i in both[diff]]
+
+
+def preset_sofa(folder: Path, anchor: str, threads: int, keys) -> None:
+    """Under the ai_clinician preset: the stays whose max SOFA changes when each of ``keys``
+    takes the project's value alone, and all at once."""
+    from dataclasses import replace
+    preset = PRESETS["ai_clinician"]
+    base = extract_mimic3(folder, anchor=anchor, threads=threads, options=preset)
+    n_onset = int(base.stays["max_sofa"].notna().sum())
+    print(f"preset: {n_onset} stays with an onset, final "
+          f"{base.trajectories[schema.STAY_ID].nunique()}")
+    print("| switch (project's value, alone) | stays whose max SOFA changes "
+          "| stays (preset -> on) |")
+    print("|---|---:|---|")
+    runs = [(k, {k: CHOICES[k][0]}) for k in keys]
+    runs.append(("all of them", {k: CHOICES[k][0] for k in keys}))
+    for name, over in runs:
+        alt = extract_mimic3(folder, anchor=anchor, threads=threads,
+                             options=replace(preset, **over))
+        ch = max_sofa_changes(base, alt)
+        cells = ", ".join(f"{i} {x:g} -> {y:g}" for i, x, y in ch)
+        print(f"| `{name}` | {len(ch)} | {cells} |", flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("folder", type=Path)
     p.add_argument("--anchor", default="first_vitals")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--preset-sofa", action="store_true")
+    p.add_argument("--keys", nargs="+", default=list(RULE_KEYS), choices=list(CHOICES))
+    p.add_argument("--only", nargs="+", choices=list(CHOICES),
+                   help="switch table rows of these switches only")
     a = p.parse_args()
+    if a.preset_sofa:
+        preset_sofa(a.folder, a.anchor, a.threads, a.keys)
+        return
     base = extract_mimic3(a.folder, anchor=a.anchor, threads=a.threads)
     print(f"defaults: {base.trajectories[schema.STAY_ID].nunique()} stays")
     print("| key | alternative | effect of the alternative |")
     print("|---|---|---|")
     for key, (_default, *alternatives) in CHOICES.items():
+        if a.only and key not in a.only:
+            continue
         for value in alternatives:
             alt = extract_mimic3(a.folder, anchor=a.anchor, threads=a.threads,
                                  options=Mimic3Options(**{key: value}))

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from scipy import stats
 from helpers.studies import OneCellBins
+from scipy import stats
 
 from twinfalsify import bounds
 from twinfalsify.design import WHOLE_SPACE

@@ -32,8 +32,8 @@ COUNTS = {
     "first_vitals": [136, 135, 85, 72, 72, 70, 67, 65, 65, 63, 61, 61, 61],
 }
 COUNTS_AI_CLINICIAN = {
-    "intime": [136, 135, 85, 70, 70, 68, 65, 65, 65, 63, 21, 21, 21],
-    "first_vitals": [136, 135, 85, 70, 70, 68, 65, 63, 63, 61, 59, 59, 59],
+    "intime": [136, 135, 86, 71, 71, 69, 66, 66, 66, 64, 21, 21, 21],
+    "first_vitals": [136, 135, 86, 71, 71, 69, 66, 64, 64, 62, 60, 60, 60],
 }
 
 
@@ -110,7 +110,9 @@ def test_sofa_components_held_only_for_their_hold_time(preset, demo):
     # 228977 stays excluded there
     assert a.loc[228977, "excluded_at"] == "not_withdrawn"
     p = demo["first_vitals"].stays.set_index(schema.STAY_ID)
-    assert p.loc[239935, "max_sofa"] == 9 and p.loc[273347, "max_sofa"] == 5
+    # defaults: 239935's maximum block had norepinephrine 0.100053, read to 3 decimals 0.1
+    # (cardiovascular 3, not 4): 8
+    assert p.loc[239935, "max_sofa"] == 8 and p.loc[273347, "max_sofa"] == 5
 
 
 def test_own_earlier_weight_before_a_donor(demo):
@@ -134,21 +136,52 @@ def test_specimens_units_and_semantics(demo, preset):
     res = demo["first_vitals"]
     a = res.stays.set_index(schema.STAY_ID)
     mbp = res.trajectories.set_index([schema.STAY_ID, "t"])["MeanBP"]
-    # 221684: a MAP of 142 charted alone above the systolic 104 charted an hour before:
-    # deleted, hour 2 is 60.7 (completed from 94 / 44 at 18:03), not 101.3
-    assert a.loc[221684, "n_map_outside_range"] == 1
-    assert mbp.loc[(221684, 2)] == pytest.approx(60.67, abs=0.01)
-    # 217992: MAPs of 3 mmHg (a transducer zeroed) below the diastolic: hour 0 is 65.2, not 34.1
-    assert a.loc[217992, "n_map_outside_range"] == 2
+    # the MAP check compares a mean only with its own device's pressures of the same
+    # minute: over whole stays 30 MAPs in 21 stays (before: 142 in 43, 60 of them < 65
+    # mmHg, judged against the other device or readings up to 2 h old)
+    assert a["n_map_outside_range"].sum() == 30 and (a["n_map_outside_range"] > 0).sum() == 21
+    # 220671: the cuff's MAP of 37 charted alone at 01:00 stays (before: deleted below the
+    # cuff's diastolic 42 of 00:23): hour 2 is 61.3, not 85.7
+    assert mbp.loc[(220671, 2)] == pytest.approx(61.33, abs=0.01)
+    # 221684: a MAP of 142 charted alone, with no pressure of its device that minute, is not
+    # judged: hour 2 is (142 + 60.7) / 2
+    assert a.loc[221684, "n_map_outside_range"] == 0
+    assert mbp.loc[(221684, 2)] == pytest.approx(101.33, abs=0.01)
+    # 217992: arterial MAPs of 3 mmHg charted alone (a transducer zeroed) are below 5 mmHg:
+    # deleted as outliers, not by the check; hour 0 is 65.2, not 34.1, under either preset
+    assert a.loc[217992, "n_map_outside_range"] == 0
     assert mbp.loc[(217992, 0)] == pytest.approx(65.2, abs=0.05)
-    # venous and mixed-venous blood gases: their PaO2 / PaCO2 / pH are not arterial
-    assert a["n_venous_gas_rows"].sum() == 33
+    pm = preset.trajectories.set_index([schema.STAY_ID, "t"])["MeanBP"]
+    assert pm.loc[(217992, 0)] == pytest.approx(68.0)  # before: 24.7 = (68 + 3 + 3) / 3
+    # venous and mixed-venous blood gases: their PaO2 / PaCO2 / pH are not arterial;
+    # counted over whole stays (the hourly windows alone hold 33 of them); 272047, whose
+    # max SOFA they lower from 6 to 4, shows its 3 (before: 0, counted in the hourly window)
+    assert a["n_venous_gas_rows"].sum() == 162 and (a["n_venous_gas_rows"] > 0).sum() == 24
+    assert a.loc[272047, "n_venous_gas_rows"] == 3 and a.loc[272047, "max_sofa"] == 4
     # 290513's only culture is an MRSA screen: no suspected infection
     assert a.loc[290513, "n_screen_cultures"] == 1
     assert a.loc[290513, "infection_status"] != "onset"
-    # GU irrigant in (227488) is subtracted from the urine output read by sofa: ai_clinician
+    # the preset applies none of the three rules (AI-Clinician does not): the irrigant is not
+    # read (counted 0), the venous gases kept, 290513's MRSA screen a culture
     p = preset.stays.set_index(schema.STAY_ID)
-    assert p["n_urine_irrigant_rows"].sum() == 97 and a["n_urine_irrigant_rows"].sum() == 0
+    assert p["n_urine_irrigant_rows"].sum() == 0 and a["n_urine_irrigant_rows"].sum() == 0
+    assert p["n_venous_gas_rows"].sum() == 0 and p.loc[272047, "max_sofa"] == 6
+    assert p.loc[290513, "infection_status"] == "onset" and p.loc[290513, "in_cohort"]
+    # the SOFA reads the vasopressor rate to 3 decimals: 265505's norepinephrine 0.100104 and
+    # 298685's dopamine 10.008 (x 0.01) score 3 cardiovascular points, not 4
+    assert p.loc[265505, "max_sofa"] == 7 and p.loc[298685, "max_sofa"] == 8
+    assert "cardiovascular=3" in p.loc[298685, "sofa_organs"]
+
+
+def test_preset_irrigant_subtracted_when_switched_on():
+    """GU irrigant in (227488) is subtracted from the urine output read by sofa:
+    ai_clinician when urine_irrigant is subtract; the tube-feed residual rows are counted
+    where they are left out."""
+    from dataclasses import replace
+    opts = replace(PRESETS["ai_clinician"], urine_irrigant="subtract", tf_residual="exclude")
+    a = extract_mimic3(DEMO, options=opts).stays.set_index(schema.STAY_ID)
+    assert a["n_urine_irrigant_rows"].sum() == 97
+    assert a["n_urine_tf_residual_rows"].sum() == 142  # of 143 rows, one without a stay
 
 
 def test_docs_consort_table_equals_the_extraction_counts():

@@ -50,10 +50,52 @@ def test_coverage_table_per_release():
     v = cov.loc["vasopressors"]
     # the three MIMIC-IV-only phenylephrine items: none in MIMIC-III, two in v2.0, three in 3.1
     assert v["MIMIC-IV v3.1"] - v["MIMIC-IV v2.0"] == 1
-    assert v["MIMIC-IV only"] == "229630, 229631, 229632"
+    # ... and the two angiotensin II items (read, not converted)
+    assert v["MIMIC-IV only"] == "229630, 229631, 229632, 229709, 229764"
+    assert itemmap.releases_of(229709) == itemmap.MIMIC4_RELEASES
+    assert itemmap.releases_of(50816) == itemmap.RELEASES  # the blood-gas FiO2: both
     assert itemmap.releases_of(229631) == ("MIMIC-IV v3.1",)
     assert itemmap.releases_of(211) == ("MIMIC-III v1.4",)  # CareVue heart rate
     assert itemmap.releases_of(50821) == itemmap.RELEASES  # labs: both
     # every MIMIC-IV release reads at least the MIMIC-IV concept items of each list
     for lst in itemmap.ITEM_LISTS:
         assert cov.loc[lst.name, "MIMIC-IV v2.0"] >= len(lst.mimic4_concept), lst.name
+
+
+def test_angiotensin_ii_is_read_not_converted_and_counted():
+    """MIMIC-IV's angiotensin II rows (229709, 229764; ng/kg/min) are read by the input reader
+    as vasopressor rows, give no norepinephrine equivalent (no factor on AI-Clinician's
+    scale), so no dose; the audit counts them (n_vaso_rows_not_converted) by
+    ``doses.not_converted_items``, apart from rows in an unknown unit."""
+    import duckdb
+
+    from twinfalsify.sources.mimic3.cohort import _inputs
+    t = pd.Timestamp("2150-01-01 10:00")
+    mv = pd.DataFrame({
+        "ICUSTAY_ID": "1", "ITEMID": ["229709", "229764", "221906"],
+        "STARTTIME": str(t), "ENDTIME": str(t + pd.Timedelta(hours=2)),
+        "AMOUNT": "1", "RATE": ["20", "10", "0.1"],
+        "RATEUOM": ["ng/kg/min", "ng/kg/min", "mcg/kg/min"],
+        "STATUSDESCRIPTION": "FinishedRunning",
+        "PATIENTWEIGHT": "70"})
+    cv = pd.DataFrame({c: pd.Series(dtype=str) for c in
+                       ("ICUSTAY_ID", "ITEMID", "CHARTTIME", "AMOUNT", "RATE", "RATEUOM")})
+    con = duckdb.connect()
+    con.register("INPUTEVENTS_MV", mv)
+    con.register("INPUTEVENTS_CV", cv)
+    win = pd.Series([t], index=[1])
+    _, _, mv_v, _ = _inputs(con, [1], win, win + pd.Timedelta(hours=4))
+    assert sorted(mv_v["itemid"]) == [221906, 229709, 229764]  # read
+    assert doses.not_converted_items() == {229709, 229764}
+    ne = doses.norepinephrine_equivalent(mv_v, "mv")
+    assert ne[mv_v["itemid"] != 221906].isna().all()
+    # the action is the norepinephrine running beside it, not the angiotensin rate
+    vaso = doses.hourly_vasopressor(win, mv_v, mv_v.iloc[:0], 1)
+    np.testing.assert_allclose(vaso.to_numpy(), [0.1, 0.1])
+
+
+def test_tf_residual_and_blood_gas_fio2_are_in_the_item_lists():
+    lists = {lst.name: set(lst.itemids()) for lst in itemmap.ITEM_LISTS}
+    assert 50816 in lists["FiO2"] and 223835 in lists["FiO2"]
+    assert {227510, 227488} <= lists["urine output"]
+    assert {229709, 229764} <= lists["vasopressors"]

@@ -15,7 +15,7 @@ from twinfalsify.sources.mimic3.options import Mimic3Options
 
 FIX = FIXTURES / "mimic3-patients"
 MAIN_FIX = FIXTURES / "mimic3"
-P = {n: 300000 + n for n in range(1, 18)}
+P = {n: 300000 + n for n in range(1, 19)}
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +35,11 @@ def _audit(res) -> pd.DataFrame:
 def test_consort(cohort):
     c = cohort.consort
     assert list(c["step"]) == list(STEPS)
-    # 14 stays; P13 has no culture; P14 scores SOFA 1 (held components); every other stay is
+    # 18 stays; P13 has no culture; P14 scores SOFA 1 (held components); every other stay is
     # kept (P4 and P5 only since the completed BP is held and SOFA carries);
     # stays_per_patient: all removes nothing
     # P15's imputed weight is implausible for its height (fails imputable)
-    assert c["n_stays"].tolist() == [17, 17, 16, 15, 15, 15, 15, 15, 15, 15, 15, 15, 14]
+    assert c["n_stays"].tolist() == [18, 18, 17, 16, 16, 16, 16, 16, 16, 16, 16, 16, 15]
     assert set(cohort.trajectories[schema.STAY_ID]) == set(P.values()) - {P[13], P[14], P[15]}
 
 
@@ -132,7 +132,7 @@ def test_stays_per_patient_first():
                          options=Mimic3Options(stays_per_patient="first"))
     c = res.consort.set_index("step")
     # P7 and P9 are their patients' second stays
-    assert c.loc["stays_per_patient", "n_stays"] == 13
+    assert c.loc["stays_per_patient", "n_stays"] == 14
     assert c.loc["stays_per_patient", "n_excluded"] == 2
     ids = set(res.trajectories[schema.STAY_ID])
     assert P[6] in ids and P[8] in ids and not {P[7], P[9]} & ids
@@ -164,16 +164,53 @@ def test_audit_splits_the_infection_step(cohort):
     assert pd.isna(main.loc[200001, "max_block_sofa"])  # not a candidate: not computed
 
 
-def test_map_outside_systolic_and_norepinephrine_units(cohort):
-    # P16: MAP 142 charted alone at 2:10, above the systolic 110 of 1:30: deleted, so hour 2
-    # is the 77 of 2:30 (before: (142 + 77) / 2 = 109.5). Norepinephrine 0.0001 mg/kg/min over
-    # hours 1-2 is 0.1 ug/kg/min (before: dropped, 0); a row in mL/hr is counted
+def test_map_check_same_device_same_time(cohort):
+    # P16 (MetaVision; cuff at h:30, arterial line beside it; README): hour 1 = the cuff's 73
+    # and 66.7, the arterial MAP 142 above its own 100 / 50 of 1:10 deleted (both duplicate
+    # rows) and completed from them; hour 2 keeps the 142 charted alone at 2:10 (before:
+    # deleted against the cuff's systolic of 1:30); hour 3 keeps the arterial 50 beside the
+    # cuff's 118 / 61 (before: deleted below the cuff's diastolic: a real low MAP lost);
+    # hour 4: the arterial MAP 3 is a zeroed transducer (below 5 mmHg)
     s = _stay(cohort, P[16])
-    assert s.loc[2, "MeanBP"] == 77.0
-    assert s["vasopressor"].tolist() == pytest.approx([0.0, 0.1, 0.1, 0.0, 0.0])
-    a = _audit(cohort).loc[P[16]]
-    assert a["n_map_outside_range"] == 1 and a["n_vaso_rows_unit_unknown"] == 1
-    assert _audit(cohort).loc[P[1], "n_map_outside_range"] == 0
+    assert s["MeanBP"].tolist() == pytest.approx([80.0, (73 + 200 / 3) / 2, 109.5, 65.0, 82.0])
+    # the audit counts every deletion of the whole stay: 2 rows at 1:10, and beyond the
+    # hourly window 20:00 (30 below its own 60) and 23:00 (95 above its own systolic 90, no
+    # diastolic); not 21:00 (95 beside a line at 0 / 0) nor 22:00 (90 = systolic 90)
+    a = _audit(cohort)
+    assert a.loc[P[16], "n_map_outside_range"] == 4
+    # P18 (CareVue): the arterial 77 below the cuff's diastolic 100 of the same minute stays
+    # (hour 2 = (77 + 113) / 2); the arterial 65 below its own 100 / 70 goes, completed to 80
+    s = _stay(cohort, P[18])
+    assert s.loc[2, "MeanBP"] == 95.0 and s.loc[3, "MeanBP"] == 80.0
+    assert a.loc[P[18], "n_map_outside_range"] == 1
+    assert (a.drop([P[16], P[18]])["n_map_outside_range"] == 0).all()
+
+
+def test_map_check_reads_the_same_device_diastolic_under_bp_items_ai_clinician():
+    # bp_items: ai_clinician does not read 220051 as a diastolic feature, but the check still
+    # compares P16's arterial MAP of 20:00 with it: the same 4 deletions
+    res = extract_mimic3(FIX, anchor="first_vitals", options=Mimic3Options(bp_items="ai_clinician"))
+    a = _audit(res)
+    assert a.loc[P[16], "n_map_outside_range"] == 4 and a.loc[P[18], "n_map_outside_range"] == 1
+
+
+def test_norepinephrine_units_and_dose_plausibility(cohort):
+    # P16: norepinephrine 0.0001 mg/kg/min (no PATIENTWEIGHT) over hours 1-2 is x 1000 =
+    # 0.1 ug/kg/min; 0.08 mg/kg/min with PATIENTWEIGHT 1 (mimic-code's mis-charted rows) is
+    # 0.08 ug/kg/min in hour 4; 0.08 mg/kg/min at 70 kg read x 1000 is 80 ug/kg/min: outside
+    # dose_limits.csv, dropped, so hour 0 has no vasopressor (before: an 80 ug/kg/min
+    # action); a 20,000 mL fluid row in hour 2 is dropped too; a row in mL/hr is counted
+    s = _stay(cohort, P[16])
+    assert s["vasopressor"].tolist() == pytest.approx([0.0, 0.1, 0.1, 0.0, 0.08])
+    assert s["iv_fluid"].tolist() == [100.0, 0.0, 0.0, 0.0, 0.0]
+    a = _audit(cohort)
+    assert a.loc[P[16], "n_vaso_rows_unit_unknown"] == 1
+    assert a.loc[P[16], "n_dose_rows_implausible"] == 2
+    assert (a.drop(P[16])[["n_vaso_rows_unit_unknown", "n_dose_rows_implausible"]] == 0).all(
+        axis=None)
+    # every action of every stay lies in the plausibility ranges
+    t = cohort.trajectories
+    assert t["vasopressor"].between(0, 5).all() and t["iv_fluid"].between(0, 10_000).all()
 
 
 def test_labs_and_cultures_without_admission_are_linked_by_time(cohort):

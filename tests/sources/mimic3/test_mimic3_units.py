@@ -15,11 +15,12 @@ T0 = pd.Timestamp("2150-01-01 10:00")
 
 
 def test_data_tables_have_meaning_and_version():
-    versions = {"items.csv": "2", "unit_conversions.csv": "1", "outlier_limits.csv": "2",
-                "sample_and_hold.csv": "2", "vasopressors.csv": "3", "fluids.csv": "1",
-                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "3",
+    versions = {"items.csv": "3", "unit_conversions.csv": "1", "outlier_limits.csv": "3",
+                "sample_and_hold.csv": "2", "vasopressors.csv": "5", "fluids.csv": "1",
+                "antibiotics.csv": "2", "cultures.csv": "1", "urine.csv": "4",
                 "withdrawal.csv": "1", "heights.csv": "1",
-                "specimens.csv": "1", "screens.csv": "1"}
+                "specimens.csv": "1", "screens.csv": "1", "bp_devices.csv": "1",
+                "dose_limits.csv": "1"}
     for name, version in versions.items():
         t = data_table(name)
         assert t["meaning"].notna().all(), name
@@ -210,6 +211,16 @@ def test_renal_sofa_from_urine_output():
     assert cohort.sofa_components(b)["renal"].tolist() == [0, 3, 4, 4]
 
 
+def test_cardiovascular_sofa_reads_the_rate_to_3_decimals():
+    """Demo 265505 (norepinephrine 0.100103647 ug/kg/min) and 298685 (dopamine
+    10.0079767 ug/kg/min x 0.01) score 3 points, as the ordered 0.1 / 10 do (SOFA: dopamine
+    5-15 is 3 points); 0.1006 reads 0.101: 4."""
+    b = pd.DataFrame({c: [np.nan] * 4 for c in ("pf", "sofa_platelets", "sofa_bilirubin",
+                                                 "MeanBP", "sofa_gcs", "sofa_creatinine")})
+    b["vaso"] = [0.100103647, 10.0079767 * 0.01, 0.1006, 0.05]
+    assert cohort.sofa_components(b)["cardiovascular"].tolist() == [3, 3, 4, 3]
+
+
 @pytest.mark.parametrize("system,item,rate,uom,expected", [
     ("mv", 221906, 0.2, "mcg/kg/min", 0.2),
     ("mv", 221906, 16, "mcg/min", 0.2),  # / 80 kg
@@ -278,25 +289,131 @@ def test_knn_impute_fast_equals_direct_with_ties_and_chunks(seed):
         assert np.isnan(fast[7]).all()
 
 
-def test_norepinephrine_in_mg_per_kg_min_is_converted():
-    # MIMIC-IV charts a few norepinephrine rates in mg/kg/min; before they were dropped (NaN)
-    ev = pd.DataFrame({"itemid": [221906, 221906, 221906], "rate": [0.1, 0.0001, 5.0],
-                       "rateuom": ["mcg/kg/min", "mg/kg/min", "mL/hr"]})
+def test_norepinephrine_in_mg_per_kg_min_as_the_cited_source():
+    # mimic-code norepinephrine.sql: mg/kg/min rows with patientweight = 1 are charted in the
+    # wrong unit and kept as mcg/kg/min; other mg/kg/min rows are x 1000
+    ev = pd.DataFrame({"itemid": [221906] * 5, "rate": [0.1, 0.0001, 5.0, 0.08, 0.08],
+                       "rateuom": ["mcg/kg/min", "mg/kg/min", "mL/hr", "mg/kg/min",
+                                   "mg/kg/min"],
+                       "patientweight": [70.0, np.nan, 70.0, 1.0, 70.0]})
     ne = doses.norepinephrine_equivalent(ev, "mv").to_numpy()
-    np.testing.assert_allclose(ne[:2], [0.1, 0.1])
+    np.testing.assert_allclose(ne[[0, 1, 3, 4]], [0.1, 0.1, 0.08, 80.0])
     assert np.isnan(ne[2])  # no rule for mL/hr: counted in the audit table
+    # without the column the weight-1 rule cannot match: x 1000
+    no_w = doses.norepinephrine_equivalent(ev.drop(columns="patientweight"), "mv").to_numpy()
+    assert no_w[3] == pytest.approx(80.0)
+    # the 80 is not a dose: outside dose_limits.csv; the bounds themselves are doses
+    ok = doses.dose_plausible(pd.Series([0.0, 5.0, 80.0, -0.1, np.nan]), "vasopressor")
+    assert ok.tolist() == [True, True, False, False, True]
+    ok = doses.dose_plausible(pd.Series([0, 10_000, 10_001, -1]), "iv_fluid")
+    assert ok.tolist() == [True, True, False, False]
 
 
 def test_map_outside_diastolic_systolic_is_deleted():
     t = pd.Timestamp("2150-01-01 10:00")
     m = pd.Timedelta(minutes=1)
-    ev = pd.DataFrame({
-        "icustay_id": 1,
-        "time": [t, t, t, t + 60 * m, t + 66 * m, t + 90 * m, t + 200 * m, t + 400 * m],
-        "feature": ["SysBP", "DiaBP", "MeanBP", "MeanBP", "MeanBP", "MeanBP", "SysBP",
-                    "MeanBP"],
-        "value": [104.0, 60.0, 75.0, 142.0, 3.0, 60.0, 90.0, 95.0]})
-    bad = hourly.map_outside_range(ev)
-    # 142 > the systolic 104 charted before it, 3 < the diastolic 60; 60 and 75 lie within;
-    # the MAP of t + 400 min has a systolic 200 min old (> 2 h) and no diastolic: kept
-    assert bad.tolist() == [False, False, False, True, True, False, False, False]
+    # arterial line (MetaVision 220050 / 220051 / 220052) and cuff (220179 / 220180 / 220181)
+    refs = pd.DataFrame({"icustay_id": 1,
+                         "time": [t, t, t, t, t + 60 * m, t + 90 * m, t + 90 * m],
+                         "itemid": [220050, 220051, 220179, 220180, 220050, 220050, 220051],
+                         "value": [104.0, 60.0, 140.0, 90.0, 100.0, 0.0, 0.0]})
+    maps = pd.DataFrame({"icustay_id": 1,
+                         "time": [t, t, t, t, t + 60 * m, t + 61 * m, t + 90 * m, t],
+                         "itemid": [220052, 220052, 220181, 220052, 220052, 220052, 220052,
+                                    224322],
+                         "value": [75.0, 142.0, 95.0, 55.0, 100.0, 142.0, 95.0, 150.0]})
+    bad = hourly.map_outside_range(maps, refs)
+    # 75 within its line's 104 / 60; 142 above it; the cuff's 95 within 140 / 90; the
+    # arterial 55 below its own 60 (and the cuff's 90); 100 = its systolic alone: kept; 142
+    # a minute after the systolic 100: another time, kept; 95 beside a line at 0 / 0: kept;
+    # the IABP mean 150 has no device pressures: kept
+    assert bad.tolist() == [False, True, False, True, False, False, False, False]
+    # never deleted for falling below another device's diastolic: the cuff's 90 judges only
+    # the cuff's mean
+    only_cuff = refs[refs["itemid"].isin([220179, 220180])]
+    assert not hourly.map_outside_range(maps.iloc[[3]], only_cuff).any()
+
+
+def test_map_check_agrees_with_a_brute_force_loop():
+    """Random MAPs and references of two devices on a coarse time grid (many ties and
+    duplicates, integer values, missing diastolics, zeros, contradictory pairs): the
+    vectorised check equals a row-by-row reading of its definition."""
+    rng = np.random.default_rng(48)
+    n = 400
+    t = pd.Timestamp("2150-01-01 10:00") + pd.to_timedelta(rng.integers(0, 6, n), "min")
+    dev = {"a": (220050, 220051, 220052), "c": (220179, 220180, 220181)}
+    kind = rng.choice(["a", "c"], n)
+    role = rng.integers(0, 3, n)
+    item = np.array([dev[k][r] for k, r in zip(kind, role, strict=True)])
+    ev = pd.DataFrame({"icustay_id": rng.integers(1, 3, n), "time": t, "itemid": item,
+                       "value": rng.integers(0, 160, n).astype(float)})
+    maps, refs = ev[role == 2].reset_index(drop=True), ev[role < 2].reset_index(drop=True)
+    fast = hourly.map_outside_range(maps, refs)
+    slow = []
+    for _, q in maps.iterrows():
+        k = "a" if q["itemid"] == 220052 else "c"
+        same = refs[(refs["icustay_id"] == q["icustay_id"]) & (refs["time"] == q["time"])
+                    & (refs["value"] > 0)]
+        s = same.loc[same["itemid"] == dev[k][0], "value"]
+        d = same.loc[same["itemid"] == dev[k][1], "value"]
+        s = s.mean() if len(s) else np.nan
+        d = d.mean() if len(d) else np.nan
+        if np.isfinite(s) and np.isfinite(d) and s <= d:
+            slow.append(False)  # a contradictory pair judges nothing
+            continue
+        slow.append(bool((np.isfinite(s) and q["value"] > s)
+                         or (np.isfinite(d) and q["value"] < d)))
+    assert fast.tolist() == slow
+    assert 10 < sum(slow) < len(slow) - 10  # the draw exercises both outcomes
+
+
+def test_every_blood_pressure_item_has_a_device():
+    """A MeanBP item without a device would never be checked: bp_devices.csv lists every
+    SysBP, MeanBP and DiaBP item of items.csv, with the role of its feature."""
+    items = hourly.item_map()
+    bp = items[items["feature"].isin(hourly.BP)].set_index("itemid")["feature"]
+    dev = hourly.bp_devices().set_index("itemid")["role"].map(hourly.BP_ROLES)
+    assert bp.index.isin(dev.index).all(), sorted(set(bp.index) - set(dev.index))
+    assert (dev.reindex(bp.index) == bp).all()
+
+
+def test_urine_irrigant_subtracted_within_its_charting_time():
+    """GU irrigant in (227488) comes back in the urine charted with it (227489): subtracted
+    per charting time, never below 0 mL; a charting time with irrigant only is no urine."""
+    import duckdb
+
+    t = pd.Timestamp("2150-01-01 10:00")
+    rows = [(0.5, 227489, 100), (0.5, 227488, 300),  # 100 out, 300 in: 0, not -200
+            (1.0, 227489, 500), (1.0, 227488, 200),  # 300
+            (5.0, 227488, 1000),  # irrigant alone, block 1: no urine row (before: -1000)
+            (9.0, 40055, 50), (9.0, 40055, 50)]  # duplicates count (two rows): 100
+    out = pd.DataFrame({"ICUSTAY_ID": "1", "ITEMID": [str(r[1]) for r in rows],
+                        "CHARTTIME": [str(t + pd.Timedelta(hours=r[0])) for r in rows],
+                        "VALUE": [str(r[2]) for r in rows]})
+    con = duckdb.connect()
+    con.register("OUTPUTEVENTS", out)
+    u = cohort._urine(con, [1], pd.Series([t], index=[1]), 3)
+    assert u.to_dict() == {(1, 0): 300.0, (1, 2): 100.0}
+    assert (u >= 0).all()
+
+
+def test_own_earlier_weight_lower_median_and_age_bound(monkeypatch):
+    """The patient's own earlier weight: the lower median of the last three plausible ones
+    charted before the hour, at most 90 days old; never the mean of two."""
+    t = pd.Timestamp("2150-01-01 10:00")
+    d = pd.Timedelta(days=1)
+    w = pd.DataFrame({"subject_id": [1, 1, 2, 3, 3, 3, 4, 5, 5],
+                      "time": [t - 10 * d, t - 5 * d, t - 91 * d, t - 3 * d, t - 2 * d,
+                               t - d, t, t - 100 * d, t - 2 * d],
+                      "weight": [70.0, 234.0, 60.0, 64.6, 263.2, 65.0, 80.0, 50.0, 55.0]})
+    monkeypatch.setattr(cohort, "patient_weights", lambda con, stays, subjects: w)
+    stays = pd.DataFrame({"subject_id": [1, 2, 3, 4, 5]}, index=[11, 12, 13, 14, 15])
+    held = pd.DataFrame({"weight": np.nan},
+                        index=pd.MultiIndex.from_product([[11, 12, 13, 14, 15], [0]],
+                                                         names=["icustay_id", "t"]))
+    t0 = pd.Series(t, index=stays.index)
+    got = cohort.own_earlier_weight(None, stays, held, t0).droplevel(1).to_dict()
+    # 11: 70 and 234 give 70 (before: their mean, 152); 12: 91 days old, none; 13: 65 (the
+    # median of 64.6, 263.2, 65); 14: charted at the hour's start, not before it; 15: the
+    # 50 kg of 100 days before is out of the bound, 55 alone
+    assert got == {11: 70.0, 13: 65.0, 15: 55.0}

@@ -201,14 +201,17 @@ def _link_by_time(ev: pd.DataFrame, stays: pd.DataFrame) -> tuple[pd.DataFrame, 
 
 
 def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
-                        evidence: dict | None = None) -> pd.DataFrame:
+                        evidence: dict | None = None, screens: str = "exclude"
+                        ) -> pd.DataFrame:
     """Onset of suspected infection per ICU stay (AI-Clinician's sepsis-3 onset rule).
 
     Antibiotics: PRESCRIPTIONS rows matching antibiotics.csv, time = STARTDATE, stay =
     PRESCRIPTIONS.ICUSTAY_ID when given. Cultures: MICROBIOLOGYEVENTS rows (time =
     CHARTTIME, else CHARTDATE) and CHARTEVENTS rows of the culture items of cultures.csv
     (AI-Clinician's culture query). Events without a stay get one by ``_assign_to_stays``
-    (``event_stay``: the rule when several stays of the admission qualify).
+    (``event_stay``: the rule when several stays of the admission qualify). Screening swabs
+    (screens.csv) are no cultures (``screens="exclude"``) or count as cultures
+    (``"count"``, AI-Clinician); ``evidence["screens"]`` counts them per stay either way.
     Per stay, antibiotics are scanned in time order; for each, the nearest culture in time
     decides: culture within 24 h after (or at) the antibiotic -> onset = antibiotic time;
     culture within 72 h before -> onset = culture time (AI-Clinician sepsis3_def). An onset
@@ -254,8 +257,9 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
     micro_all, by_time = _link_by_time(micro_all, stays)
     micro_all = micro_all.assign(_by_time=by_time).drop(columns="subject_id")
     micro_all = micro_all[micro_all["hadm_id"].notna()]
-    micro = micro_all[~micro_all["screen"].astype(bool)].drop(columns="screen")
-    screens = micro_all[micro_all["screen"].astype(bool)].drop(columns=["screen", "_by_time"])
+    is_screen = micro_all["screen"].astype(bool)
+    micro = (micro_all[~is_screen] if screens == "exclude" else micro_all).drop(columns="screen")
+    screen_rows = micro_all[is_screen].drop(columns=["screen", "_by_time"])
     con.register("cult_items", data_table("cultures.csv")[["itemid"]].astype("int64"))
     chart = con.execute(f"""
         SELECT TRY_CAST(HADM_ID AS BIGINT) AS hadm_id, TRY_CAST(ICUSTAY_ID AS BIGINT) AS icustay_id,
@@ -274,7 +278,7 @@ def suspected_infection(con, stays: pd.DataFrame, event_stay: str = "nearest",
         evidence["culture_by_time"] = (
             _assign_to_stays(linked.drop(columns="_by_time"), stays, event_stay)["icustay_id"]
             .value_counts() if len(linked) else pd.Series(dtype="int64"))
-        scr_rows = screens[screens["time"].notna()]
+        scr_rows = screen_rows[screen_rows["time"].notna()]
         evidence["screens"] = (_assign_to_stays(scr_rows, stays, event_stay)["icustay_id"]
                                .value_counts() if len(scr_rows) else pd.Series(dtype="int64"))
     rows = {}
@@ -391,15 +395,27 @@ def patient_weights(con, stays: pd.DataFrame, subjects) -> pd.DataFrame:
             .rename(columns={"value": "weight"}))
 
 
+OWN_WEIGHT_MAX_AGE = pd.Timedelta(days=90)  # see own_earlier_weight
+
+
 def own_earlier_weight(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series
                        ) -> pd.Series:
-    """For each (icustay_id, t) of ``held`` without a weight: the median of the patient's
-    last three weights (``patient_weights``, each instant averaged) charted strictly before
-    the hour's start t0 + t h, in this stay or an earlier one, however long before (a body
-    weight changes slowly; the patient's own is a better estimate than another patient's).
-    The median of three, not the last value, so that one mis-charted weight is not carried
-    for months: 210164 charts 64.6 kg, then 263.2 kg the next day (no height known by then
-    to reject it); its patient's next stay, 281609, starts from 64.6 kg, not 263.2.
+    """For each (icustay_id, t) of ``held`` without a weight: the lower median of the
+    patient's last three plausible weights (``patient_weights``: outliers and weights
+    implausible for the height already deleted, each instant averaged) charted strictly
+    before the hour's start t0 + t h and at most ``OWN_WEIGHT_MAX_AGE`` (90 days) before it,
+    in this stay or an earlier one (a body weight changes slowly; the patient's own is a
+    better estimate than another patient's).
+
+    The median of three, not the last value, so that one mis-charted weight is not carried:
+    210164 charts 64.6 kg, then 263.2 kg the next day (no height known by then to reject it);
+    its patient's next stay, 281609, starts from 64.6 kg, not 263.2. The *lower* median, so
+    that the result is always a charted weight, never the mean of two disagreeing ones (70 kg
+    and a mis-charted 234 "kg" give 70, not 152): a unit error (pounds in a kg item) makes a
+    weight too high, not too low. At most 90 days old: critical illness and the months
+    around it change the weight by more than the imputation's error (a patient loses muscle
+    mass by the week in the ICU), and 90 days is the horizon of the outcome the project
+    reads (90-day mortality); an older weight leaves the hour to the donor imputation.
     Returns the filled cells only."""
     miss = held.index[held["weight"].isna().to_numpy()]
     if not len(miss):
@@ -410,13 +426,27 @@ def own_earlier_weight(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Seri
     w = patient_weights(con, stays, k["subject_id"].unique())
     if w.empty:
         return pd.Series(dtype=float, name="weight")
-    w = w.sort_values(["subject_id", "time"], kind="stable")
-    w["weight"] = (w.groupby("subject_id")["weight"]
-                   .transform(lambda s: s.rolling(3, min_periods=1).median()))
+    w = w.sort_values(["subject_id", "time"], kind="stable").reset_index(drop=True)
+    w["pos"] = np.arange(len(w))
     hit = pd.merge_asof(k.sort_values("start", kind="stable"),
-                        w.rename(columns={"time": "start"}).sort_values("start"),
+                        w.rename(columns={"time": "start"})[["subject_id", "start", "pos"]]
+                        .sort_values("start", kind="stable"),
                         on="start", by="subject_id", allow_exact_matches=False,
-                        direction="backward").dropna(subset=["weight"])
+                        direction="backward").dropna(subset=["pos"])
+    last = hit["pos"].to_numpy("int64")
+    subj, times, kg = (w["subject_id"].to_numpy(), w["time"].to_numpy("datetime64[ns]"),
+                       w["weight"].to_numpy(float))
+    oldest = hit["start"].to_numpy("datetime64[ns]") - OWN_WEIGHT_MAX_AGE.to_timedelta64()
+    cand = np.full((len(hit), 3), np.nan)
+    for j in range(3):  # the last three, same patient, within the age bound
+        p = last - j
+        ok = p >= 0
+        ok[ok] &= (subj[p[ok]] == hit["subject_id"].to_numpy()[ok]) & (times[p[ok]] >= oldest[ok])
+        cand[ok, j] = kg[p[ok]]
+    n = np.isfinite(cand).sum(axis=1)
+    srt = np.sort(cand, axis=1)  # NaN last
+    val = np.where(n > 0, srt[np.arange(len(hit)), np.maximum(n - 1, 0) // 2], np.nan)
+    hit = hit.assign(weight=val).dropna(subset=["weight"])
     return pd.Series(hit["weight"].to_numpy(), name="weight",
                      index=pd.MultiIndex.from_frame(hit[["icustay_id", "t"]])).sort_index()
 
@@ -444,18 +474,20 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
     converted to contract units, outliers deleted. Filtering happens in DuckDB. Lab values
     only in [INTIME - 1 d, OUTTIME + 1 d] (AI-Clinician's lab window). Weights implausible
     for the patient's height are deleted (``implausible_weight``; appended to ``dropped``
-    when given). A charted mean pressure outside [diastolic, systolic] of the pressures
-    charted at or before it is deleted (``hourly.map_outside_range``; ``counts["map_outside"]``
-    receives the rows per stay when ``counts`` is given). ``opts``: the item switches
-    (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``)."""
+    when given). A charted mean pressure above the systolic or below the diastolic of the
+    same device charted at the same time is deleted (``hourly.map_outside_range``, references
+    from ``_bp_references``; ``counts["map_outside"]`` receives the rows per stay when
+    ``counts`` is given). ``opts``: the item switches
+    (bp_items, gcs_intubated, sofa: which GCS items make ``sofa_gcs``; fio2_lab: the
+    blood-gas FiO2 read or not; venous_gas: venous blood gases deleted or kept)."""
     opts = opts or Mimic3Options()
     wanted = tuple(features)
-    if "MeanBP" in wanted:  # the MAP check reads the systolic and diastolic pressures
-        features = (*wanted, *(f for f in ("SysBP", "DiaBP") if f not in wanted))
     items = hourly.item_map()
     items = items[items["feature"].isin(features)]
     if opts.bp_items == "ai_clinician":
         items = items[~items["itemid"].isin(MEASURED_DIASTOLIC)]
+    if opts.fio2_lab == "ignore":  # AI-Clinician: the charted FiO2 only, no blood-gas FiO2
+        items = items[~((items["feature"] == "sofa_fio2") & (items["source"] == "labevents"))]
     win = pd.DataFrame({"icustay_id": stays.index.to_numpy(),
                         "hadm_id": stays["hadm_id"].to_numpy(),
                         "subject_id": stays["subject_id"].to_numpy(),
@@ -500,7 +532,7 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
     le = le.drop(columns="by_time")
     gas = set(items.loc[(items["source"] == "labevents")
                         & items["feature"].isin(BLOOD_GAS), "itemid"].astype("int64"))
-    if gas and len(le):
+    if gas and len(le) and opts.venous_gas == "exclude":
         # a blood gas drawn from venous blood is not an arterial one (specimens.csv)
         con.register("spec_rules", data_table("specimens.csv")[["itemid", "value", "arterial"]])
         ven = con.execute(f"""
@@ -518,10 +550,13 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
         le = le[~hit]
     ev = pd.concat([ce, le], ignore_index=True).dropna(subset=["value", "time"])
     ev = hourly.delete_outliers(hourly.convert_values(ev))
-    bad_map = hourly.map_outside_range(ev)
-    if counts is not None:
-        counts["map_outside"] = ev.loc[bad_map, "icustay_id"].value_counts()
-    ev = ev[~bad_map & ev["feature"].isin(wanted).to_numpy()].reset_index(drop=True)
+    if "MeanBP" in wanted:
+        is_map = (ev["feature"] == "MeanBP").to_numpy()
+        bad_map = np.zeros(len(ev), dtype=bool)
+        bad_map[is_map] = hourly.map_outside_range(ev[is_map], _bp_references(con))
+        if counts is not None:
+            counts["map_outside"] = ev.loc[bad_map, "icustay_id"].value_counts()
+        ev = ev[~bad_map].reset_index(drop=True)
     if "weight" in features:
         bad = implausible_weight(con, stays, ev)
         if dropped is not None:
@@ -562,14 +597,40 @@ def _events(con, stays: pd.DataFrame, lo: pd.Series, hi: pd.Series, features,
                         pd.DataFrame({"icustay_id": g["icustay_id"], "time": g["time"],
                                       "feature": "sofa_gcs", "value": g["sum"]})],
                        ignore_index=True)
-    return ev
+    return ev[["icustay_id", "time", "feature", "value"]]
 
 
-def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
-            ) -> tuple[pd.DataFrame, ...]:
+def _bp_references(con) -> pd.DataFrame:
+    """The systolic and diastolic pressures of bp_devices.csv charted in the stays and
+    window of the table ``win`` (registered by ``_events``), outliers deleted as their
+    feature's: the MAP check's references (``hourly.map_outside_range``). Read whatever
+    ``bp_items`` says, so that the check has the same-device diastolic either way."""
+    dev = hourly.bp_devices()
+    dev = dev[dev["role"].isin(["sys", "dia"])]
+    con.register("bp_ref_items", dev[["itemid"]])
+    r = con.execute(f"""
+        SELECT w.icustay_id, {_ts('c.CHARTTIME')} AS time, CAST(c.ITEMID AS BIGINT) AS itemid,
+               TRY_CAST(c.VALUENUM AS DOUBLE) AS value
+        FROM CHARTEVENTS c JOIN win w ON CAST(c.ICUSTAY_ID AS BIGINT) = w.icustay_id
+        WHERE CAST(c.ITEMID AS BIGINT) IN (SELECT itemid FROM bp_ref_items)
+          AND coalesce(TRY_CAST(c.ERROR AS INTEGER), 0) = 0
+          AND {_ts('c.CHARTTIME')} BETWEEN w.lo AND w.hi""").df().dropna(subset=["time", "value"])
+    feat = r["itemid"].map(dev.set_index("itemid")["role"].map(hourly.BP_ROLES))
+    ok = pd.Series(False, index=r.index)
+    for f in ("SysBP", "DiaBP"):
+        m = feat == f
+        ok[m] = hourly.within_limits(f, r.loc[m, "value"])
+    return r[ok.to_numpy()]
+
+
+def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude",
+            implausible: list | None = None) -> tuple[pd.DataFrame, ...]:
     """Fluid and vasopressor rows (MetaVision, CareVue) of stays ``ids`` overlapping [lo, hi].
     MetaVision 'Rewritten' rows are dropped (``rewritten="exclude"``) or, as AI-Clinician,
-    dropped for vasopressors only (``"ai_clinician"``)."""
+    dropped for vasopressors only (``"ai_clinician"``). A row whose dose is outside
+    dose_limits.csv (``doses.dose_plausible``) is dropped; ``implausible`` (a list), when
+    given, receives the stay ids of the dropped rows. PATIENTWEIGHT is read for
+    norepinephrine charted in the wrong unit (vasopressors.csv)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(), "hi": hi.reindex(ids).to_numpy()})
     con.register("win_in", win)
@@ -580,7 +641,8 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
     mv_sel = f"""SELECT w.icustay_id, CAST(m.ITEMID AS BIGINT) AS itemid,
                {_ts('m.STARTTIME')} AS starttime, {_ts('m.ENDTIME')} AS endtime,
                TRY_CAST(m.AMOUNT AS DOUBLE) AS amount, TRY_CAST(m.RATE AS DOUBLE) AS rate,
-               m.RATEUOM AS rateuom, coalesce(m.STATUSDESCRIPTION, '') AS status
+               m.RATEUOM AS rateuom, coalesce(m.STATUSDESCRIPTION, '') AS status,
+               TRY_CAST(m.PATIENTWEIGHT AS DOUBLE) AS patientweight
         FROM INPUTEVENTS_MV m JOIN win_in w ON CAST(m.ICUSTAY_ID AS BIGINT) = w.icustay_id
         WHERE {_ts('m.STARTTIME')} <= w.hi AND {_ts('m.ENDTIME')} >= w.lo"""
     cv_sel = f"""SELECT w.icustay_id, CAST(c.ITEMID AS BIGINT) AS itemid,
@@ -596,9 +658,20 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude"
              "TRUE" if rewritten == "ai_clinician" else not_rewritten)
     mv_v = q(mv_sel, "va_items", "rate", not_rewritten)
     cv_f, cv_v = q(cv_sel, "fl_items", "amount"), q(cv_sel, "va_items", "rate")
-    return mv_f, cv_f, mv_v, cv_v
+    out = []
+    for frame, action, system in ((mv_f, "iv_fluid", "mv"), (cv_f, "iv_fluid", "cv"),
+                                  (mv_v, "vasopressor", "mv"), (cv_v, "vasopressor", "cv")):
+        dose = (frame["amount"] if action == "iv_fluid"
+                else doses.norepinephrine_equivalent(frame, system)) if len(frame) else (
+            pd.Series(dtype=float))
+        ok = doses.dose_plausible(dose, action).to_numpy(bool)
+        if implausible is not None:
+            implausible.append(frame.loc[~ok, "icustay_id"])
+        out.append(frame[ok].reset_index(drop=True))
+    return tuple(out)
 
 
+VASO_DECIMALS = 3  # SOFA reads the norepinephrine-equivalent rate to 3 decimals (sofa_components)
 SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
 
 
@@ -607,8 +680,8 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
     thresholds; columns ``SOFA_ORGANS``.
 
     Columns used (NaN component -> 0 points): pf (PaO2/FiO2 mmHg), sofa_platelets (10^3/uL),
-    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max), sofa_gcs,
-    sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
+    sofa_bilirubin (mg/dL), MeanBP (mmHg), vaso (NE-eq ug/kg/min, max; read to 3 decimals),
+    sofa_gcs, sofa_creatinine (mg/dL), optionally uo (urine output of the 4 h block, mL; NaN = not
     charted, no points). Ventilation is not used.
     """
     def pts(conds):
@@ -617,7 +690,12 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
             out = np.where(np.asarray(c, dtype=bool), p, out)  # later (worse) wins
         return out
     pf, plt, bil = b["pf"], b["sofa_platelets"], b["sofa_bilirubin"]
-    mapp, vaso, gcs, cr = b["MeanBP"], b["vaso"].fillna(0), b["sofa_gcs"], b["sofa_creatinine"]
+    # the rate compared with the 0.1 ug/kg/min threshold to 3 decimals, as AI-Clinician's
+    # vasopressor queries standardise it (round(rate_std, 3)): MetaVision charts the rate its
+    # pump computed, e.g. norepinephrine 0.100104 or dopamine 10.008 (x 0.01 = 0.10008) for an
+    # ordered 0.1 / 10, which scored 4 points instead of SOFA's 3 (dopamine 5-15: 3 points)
+    mapp, gcs, cr = b["MeanBP"], b["sofa_gcs"], b["sofa_creatinine"]
+    vaso = b["vaso"].fillna(0).round(VASO_DECIMALS)
     uo = b["uo"] if "uo" in b else pd.Series(np.nan, index=b.index)
     return pd.DataFrame({
         "respiration": pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100]),
@@ -638,26 +716,45 @@ BLOCK_FEATURES = ("MeanBP", "paO2", "sofa_fio2", "sofa_platelets", "sofa_bilirub
                   "sofa_creatinine")
 
 
-def _urine(con, ids, lo: pd.Series, n_blocks: int) -> pd.Series:
+def urine_items(opts: Mimic3Options | None = None) -> pd.DataFrame:
+    """The rows of urine.csv read under ``opts``: a row whose ``read_when`` names a switch
+    and a value (``urine_irrigant=subtract``, ``tf_residual=count``) only when that switch
+    has that value."""
+    opts = opts or Mimic3Options()
+    u = data_table("urine.csv")
+    cond = u["read_when"].fillna("").astype(str).str.strip()
+    keep = [not c or getattr(opts, c.split("=")[0]) == c.split("=")[1] for c in cond]
+    return u[np.asarray(keep, dtype=bool)]
+
+
+def _urine(con, ids, lo: pd.Series, n_blocks: int,
+           opts: Mimic3Options | None = None) -> pd.Series:
     """Urine output (mL) per 4 h block of [lo, lo + 4 n_blocks h): the sum of OUTPUTEVENTS
     rows of the items of urine.csv charted in the block (AI-Clinician's output_4hourly), the
-    GU irrigant put in (sign -1) subtracted;
+    GU irrigant put in (sign -1) subtracted within its own charting time (the irrigant
+    charted at a time comes back out in the urine charted then; mimic-code's
+    urine_output.sql sums per charting time too), never below 0 mL there: a charting time
+    with only irrigant is no urine row;
     blocks without a row are missing (AI-Clinician's nansum would make them 0 mL, i.e.
-    4 renal points for any block where no urine was charted)."""
+    4 renal points for any block where no urine was charted). ``opts``: which items
+    (``urine_items``: the irrigant and the tube-feed residual are switches)."""
     win = pd.DataFrame({"icustay_id": np.asarray(ids, dtype="int64"),
                         "lo": lo.reindex(ids).to_numpy(),
                         "hi": (lo + 4 * n_blocks * HOUR).reindex(ids).to_numpy()})
     con.register("win_uo", win)
-    con.register("uo_items", data_table("urine.csv")[["itemid", "sign"]].astype("int64"))
+    con.register("uo_items", urine_items(opts)[["itemid", "sign"]].astype("int64"))
     # sign -1: GU irrigant volume in, subtracted (only a positive volume, as the MIMIC-IV
     # concept code), so that irrigation returned through the catheter is not urine
     u = con.execute(f"""
-        SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time,
-               CASE WHEN i.sign < 0 THEN -greatest(TRY_CAST(o.VALUE AS DOUBLE), 0)
-                    ELSE TRY_CAST(o.VALUE AS DOUBLE) END AS value
-        FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
-        JOIN uo_items i ON CAST(o.ITEMID AS BIGINT) = i.itemid
-        WHERE {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi""").df()
+        SELECT icustay_id, time, greatest(sum(value), 0) AS value FROM (
+            SELECT w.icustay_id, {_ts('o.CHARTTIME')} AS time, i.sign,
+                   CASE WHEN i.sign < 0 THEN -greatest(TRY_CAST(o.VALUE AS DOUBLE), 0)
+                        ELSE TRY_CAST(o.VALUE AS DOUBLE) END AS value
+            FROM OUTPUTEVENTS o JOIN win_uo w ON CAST(o.ICUSTAY_ID AS BIGINT) = w.icustay_id
+            JOIN uo_items i ON CAST(o.ITEMID AS BIGINT) = i.itemid
+            WHERE {_ts('o.CHARTTIME')} >= w.lo AND {_ts('o.CHARTTIME')} < w.hi)
+        WHERE value IS NOT NULL AND time IS NOT NULL
+        GROUP BY icustay_id, time HAVING max(sign) > 0""").df()
     u = u.dropna()
     blk = ((u["time"].to_numpy() - lo.reindex(u["icustay_id"]).to_numpy()) // (4 * HOUR))
     return u.assign(blk=blk.astype("int64")).groupby(["icustay_id", "blk"])["value"].sum()
@@ -714,7 +811,7 @@ def block_sofa(con, stays: pd.DataFrame, start: pd.Series, n_blocks: int, *,
         if c not in b:
             b[c] = np.nan
     if opts.sofa == "ai_clinician":
-        b["uo"] = _urine(con, ids, lo, n_blocks).reindex(idx).to_numpy()
+        b["uo"] = _urine(con, ids, lo, n_blocks, opts).reindex(idx).to_numpy()
     if carry not in CARRY:
         raise ValueError(f"block_sofa: carry must be one of {CARRY}, got {carry!r}")
     if carry == "hold":
@@ -929,14 +1026,69 @@ class _Imputed:
     n_weight_hours: int  # stay-hours with a weight imputed
 
 
-def _urine_irrigant_counts(con) -> pd.Series:
-    """Per stay: the OUTPUTEVENTS rows of a GU irrigant (subtracted from the urine output)."""
-    neg = data_table("urine.csv").query("sign < 0")[["itemid"]].astype("int64")
-    con.register("uo_neg", neg)
-    return con.execute("""
-        SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
-        WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_neg)
-        GROUP BY 1""").df().set_index("icustay_id")["n"]
+def _urine_rule_counts(con, opts: Mimic3Options) -> dict[str, pd.Series]:
+    """Per stay, over the whole stay: the OUTPUTEVENTS rows of a GU irrigant subtracted from
+    the urine output (``urine_irrigant``; 0 under ``ignore``) and the tube-feed residual rows
+    left out of it (``tf_residual``; 0 under ``count``)."""
+    read = set(urine_items(opts)["itemid"].astype("int64"))
+    u = data_table("urine.csv")
+    neg = u.loc[(u["sign"] < 0) & u["itemid"].isin(read), ["itemid"]].astype("int64")
+    # urine items of AI-Clinician's list left out (tf_residual = exclude: 227510)
+    left = u.loc[(u["sign"] > 0) & ~u["itemid"].isin(read), ["itemid"]].astype("int64")
+
+    def count(items: pd.DataFrame) -> pd.Series:
+        con.register("uo_rule", items)
+        return con.execute("""
+            SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, count(*) AS n FROM OUTPUTEVENTS
+            WHERE CAST(ITEMID AS BIGINT) IN (SELECT itemid FROM uo_rule)
+            GROUP BY 1""").df().set_index("icustay_id")["n"]
+    return {"urine_irrigant": count(neg),
+            "tf_residual": count(left)}
+
+
+AUDIT_CHUNK = 5000  # stays per pass of ``_rule_counts``: bounded memory on the full database
+# the features whose rows a semantic rule sets aside (MAP check: MeanBP; venous gas: the
+# blood gases) or links by time (every lab)
+AUDIT_FEATURES = ("MeanBP", *hourly.LABS, "sofa_platelets", "sofa_bilirubin",
+                  "sofa_creatinine")
+
+
+def _rule_counts(con, allst: pd.DataFrame, opts: Mimic3Options) -> dict[str, pd.Series]:
+    """Per stay, the rows each semantic rule sets aside or links over the *whole stay*:
+    every charted row of the stay and every lab row of [INTIME - 1 d, OUTTIME + 1 d] any
+    step can read (window [INTIME - the longest hold, OUTTIME + 1 d], the lab window inside
+    it), not only the hourly window, so that a rule changing the SOFA window shows in the
+    audit: MAP check (``map_outside``), venous blood gas (``venous_gas``), labs linked by
+    time (``lab_by_time``), vasopressor rows in a unit no rule converts
+    (``vaso_unit_unknown``), rows of a vasopressor item read but not converted
+    (``vaso_not_converted``: angiotensin II), input rows with a dose outside dose_limits.csv
+    (``dose_implausible``; inputs over [INTIME, OUTTIME]). Read in chunks of
+    ``AUDIT_CHUNK`` stays."""
+    max_hold = float(data_table("sample_and_hold.csv")["hold_hours"].max())
+    parts: dict[str, list[pd.Series]] = {}
+    for c0 in range(0, len(allst), AUDIT_CHUNK):
+        st = allst.iloc[c0:c0 + AUDIT_CHUNK]
+        lo, hi = st["intime"] - max_hold * HOUR, st["outtime"] + LAB_WINDOW
+        counts: dict = {}
+        _events(con, st, lo, hi, AUDIT_FEATURES, opts, counts=counts)
+        dropped: list = []
+        _, _, mv_v, cv_v = _inputs(con, st.index, st["intime"], st["outtime"], opts.rewritten,
+                                   implausible=dropped)
+        counts["dose_implausible"] = pd.concat(dropped).value_counts()
+        # vasopressor rows in a unit no conversion rule matches give no dose: counted; rows
+        # of an item read but not converted (angiotensin II) apart
+        nc = doses.not_converted_items()
+        none = [pd.Series(dtype="int64")]
+        counts["vaso_unit_unknown"] = pd.concat(
+            [v.loc[doses.norepinephrine_equivalent(v, sysname).isna()
+                   & ~v["itemid"].isin(nc), "icustay_id"]
+             for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)] or none).value_counts()
+        counts["vaso_not_converted"] = pd.concat(
+            [v.loc[v["itemid"].isin(nc), "icustay_id"] for v in (mv_v, cv_v) if len(v)]
+            or none).value_counts()
+        for k, v in counts.items():
+            parts.setdefault(k, []).append(v)
+    return {k: pd.concat(v) for k, v in parts.items()}
 
 
 def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic3Options,
@@ -946,14 +1098,15 @@ def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic
     ``crit``; returns the suspected infections and the max SOFA (for the audit)."""
     ids_all = allst.index
     crit["adult"] = (allst["age"] >= 18).to_numpy()
-    inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence)
+    inf = suspected_infection(con, allst, opts.event_stay, evidence=evidence,
+                              screens=opts.screens)
     crit["suspected_infection"] = inf["in_window"].reindex(ids_all).fillna(False).astype(bool)
     has_onset = inf.index[inf["in_window"].to_numpy()]
     sofa = (max_sofa(con, allst.loc[has_onset], inf.loc[has_onset, "onset"], opts)
             if len(has_onset) else pd.DataFrame(columns=["max_sofa", "sofa_organs"]))
     crit["sofa_ge_2"] = (sofa["max_sofa"] >= 2).reindex(ids_all).astype("boolean")
-    if opts.sofa == "ai_clinician":  # urine output read: irrigant rows subtracted, counted
-        ev_counts["urine_irrigant"] = _urine_irrigant_counts(con)
+    if opts.sofa == "ai_clinician":  # urine output read: irrigant and residual rows counted
+        ev_counts.update(_urine_rule_counts(con, opts))
     crit["mortality_documented"] = allst["hospital_expire_flag"].isin([0, 1]).to_numpy()
     documented = con.execute("""
         SELECT DISTINCT TRY_CAST(ICUSTAY_ID AS BIGINT) FROM INPUTEVENTS_MV
@@ -965,7 +1118,7 @@ def _clinical_criteria(con, allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic
 
 
 def _hours(con, allst: pd.DataFrame, crit: pd.DataFrame, t_max: int, anchor: str,
-           window_h: int, opts: Mimic3Options, ev_counts: dict) -> _Hours:
+           window_h: int, opts: Mimic3Options) -> _Hours:
     """Hourly blocks of every stay, anchored; the criteria ``anchor`` and
     ``stay_covers_window`` into ``crit``."""
     ids_all = allst.index
@@ -978,7 +1131,7 @@ def _hours(con, allst: pd.DataFrame, crit: pd.DataFrame, t_max: int, anchor: str
     feats = ("weight", *hourly.VITALS, *hourly.LABS)
     dropped: list = []
     ev = _events(con, allst, intime - max_hold * HOUR, intime + n_blk * HOUR, feats, opts,
-                 dropped=dropped, counts=ev_counts)
+                 dropped=dropped)
     n_implausible = pd.concat(dropped)["icustay_id"].value_counts() if dropped else None
     # blood pressure completed per charting time, then hourly means and sample-and-hold of
     # charted and completed values alike (AI-Clinician's order)
@@ -1157,7 +1310,7 @@ def _missingness(raw: pd.DataFrame, after_hold_missing: pd.DataFrame, n: int, t_
 
 
 def _trajectories(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series, t_max: int,
-                  opts: Mimic3Options, ev_counts: dict, source: str) -> pd.DataFrame:
+                  opts: Mimic3Options, source: str) -> pd.DataFrame:
     """The cohort's trajectory rows: features, age, sex, the hour's doses, the patient."""
     ids = stays.index
     traj = held.reset_index()
@@ -1165,11 +1318,6 @@ def _trajectories(con, stays: pd.DataFrame, held: pd.DataFrame, t0: pd.Series, t
     traj["sex"] = stays["sex"].reindex(traj["icustay_id"]).to_numpy()
     # doses on the same anchor: hour t of the doses is [t0 + t h, t0 + (t + 1) h)
     mv_f, cv_f, mv_v, cv_v = _inputs(con, ids, t0, t0 + (t_max + 1) * HOUR, opts.rewritten)
-    # vasopressor rows in a unit no conversion rule matches give no dose: counted, not silent
-    unknown = pd.concat([v.loc[doses.norepinephrine_equivalent(v, sysname).isna(), "icustay_id"]
-                         for v, sysname in ((mv_v, "mv"), (cv_v, "cv")) if len(v)] or
-                        [pd.Series(dtype="int64")])
-    ev_counts["vaso_unit_unknown"] = unknown.value_counts()
     fl = doses.hourly_fluid(t0, mv_f, cv_f, t_max)
     va = doses.hourly_vasopressor(t0, mv_v, cv_v, t_max)
     key = pd.MultiIndex.from_frame(traj[["icustay_id", "t"]])
@@ -1195,7 +1343,8 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     ev_counts: dict = {}
     wd_inputs: dict = {}
     inf, sofa = _clinical_criteria(con, allst, crit, opts, evidence, ev_counts, wd_inputs)
-    hours = _hours(con, allst, crit, t_max, anchor, window_h, opts, ev_counts)
+    ev_counts.update(_rule_counts(con, allst, opts))
+    hours = _hours(con, allst, crit, t_max, anchor, window_h, opts)
     held, full = hours.held, hours.full
     wd, w_desc = _weight_documented(con, allst, held, t_max, opts)
     crit["weight_documented"] = wd.reindex(full).reindex(ids_all).astype("boolean")
@@ -1220,7 +1369,7 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
     offset = hours.offset.reindex(ids)
     after_hold_missing = imputed.missing_after_hold.loc[ids]
     missingness = _missingness(raw, after_hold_missing, len(ids), t_max)
-    traj = _trajectories(con, stays, held, t0, t_max, opts, ev_counts,
+    traj = _trajectories(con, stays, held, t0, t_max, opts,
                          f"{layout.kind} extraction of {folder}")
     anchors = pd.DataFrame({schema.STAY_ID: ids.to_numpy("int64"),
                             "intime": stays["intime"].to_numpy(), "t0": t0.to_numpy(),
@@ -1241,7 +1390,10 @@ def _extract(con, folder: Path, t_max: int, anchor: str, window_h: int,
 # counts of rows set aside by a rule, per stay -> audit column
 AUDIT_COUNTS = {"map_outside": "n_map_outside_range",
                 "vaso_unit_unknown": "n_vaso_rows_unit_unknown",
+                "vaso_not_converted": "n_vaso_rows_not_converted",
+                "dose_implausible": "n_dose_rows_implausible",
                 "urine_irrigant": "n_urine_irrigant_rows",
+                "tf_residual": "n_urine_tf_residual_rows",
                 "venous_gas": "n_venous_gas_rows",
                 "screens": "n_screen_cultures",
                 "lab_by_time": "n_labs_linked_by_time",
@@ -1268,7 +1420,7 @@ def _audit(allst: pd.DataFrame, inf: pd.DataFrame, sofa: pd.DataFrame, crit: pd.
     patient's own earlier weight (``n_own_weight_hours``: beyond the 72 h hold, or from an
     earlier stay), whether the weight imputed from another patient was implausible for the
     patient's height (``weight_imputed_implausible``: the stay fails ``imputable``), the
-    rows each semantic rule set aside in the extraction window (``counts``:
+    rows each semantic rule set aside over the whole stay (``counts``, from ``_rule_counts``:
     ``n_map_outside_range``, ...), and the imputed cells: weight hours and lab cells apart."""
     a = pd.DataFrame({schema.STAY_ID: allst.index.to_numpy("int64"),
                       "subject_id": allst["subject_id"].to_numpy(),

@@ -37,9 +37,11 @@ def tonicity_factors() -> pd.Series:
 def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
     """Norepinephrine-equivalent rate (ug/kg/min) per event row; NaN when no rule matches.
 
-    ``events`` has columns itemid, rate, rateuom. Formula: rate * factor / weight_divisor,
-    with the first matching row of vasopressors.csv (lowest priority number; rateuom '*'
-    matches any unit; min_rate_exclusive: the row needs rate > it).
+    ``events`` has columns itemid, rate, rateuom and optionally patientweight. Formula:
+    rate * factor / weight_divisor, with the first matching row of vasopressors.csv (lowest
+    priority number; rateuom '*' matches any unit; min_rate_exclusive: the row needs
+    rate > it; patientweight_eq: the row needs that PATIENTWEIGHT, so it never matches
+    events without the column; a row without a factor converts nothing: NaN).
     """
     rules = data_table("vasopressors.csv")
     rules = rules[rules["system"] == system].sort_values("priority", kind="stable")
@@ -48,14 +50,38 @@ def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
     uom = events["rateuom"].astype("string").str.strip()
     item = events["itemid"].astype("int64")
     for _, r in rules.iterrows():
+        if pd.isna(r["factor"]):  # read, not converted (not_converted_items)
+            continue
         m = (item == int(r["itemid"])) & out.isna() & rate.notna()
         if r["rateuom"] != "*":
             m &= uom == r["rateuom"]
         if pd.notna(r["min_rate_exclusive"]):
             m &= rate > float(r["min_rate_exclusive"])
+        if pd.notna(r["patientweight_eq"]):
+            w = (pd.to_numeric(events["patientweight"], errors="coerce")
+                 if "patientweight" in events else pd.Series(np.nan, index=events.index))
+            m &= w == float(r["patientweight_eq"])
         div = 1.0 if pd.isna(r["weight_divisor"]) else float(r["weight_divisor"])
         out[m] = rate[m] * float(r["factor"]) / div
     return out
+
+
+def not_converted_items() -> frozenset[int]:
+    """Vasopressor items read but not converted (vasopressors.csv rows without a factor:
+    MIMIC-IV's angiotensin II): their rows give no dose and are counted per stay."""
+    rules = data_table("vasopressors.csv")
+    return frozenset(rules.loc[rules["factor"].isna(), "itemid"].astype("int64"))
+
+
+def dose_plausible(values: pd.Series, action: str) -> pd.Series:
+    """True where a row's dose (``action`` ``vasopressor``: its norepinephrine-equivalent
+    rate, ug/kg/min; ``iv_fluid``: its amount, mL) lies in dose_limits.csv's [lo, hi];
+    NaN (no dose: e.g. a unit no rule converts) counts as plausible here, as it gives no
+    dose anyway."""
+    lim = data_table("dose_limits.csv").set_index("action")
+    lo, hi = float(lim.loc[action, "lo"]), float(lim.loc[action, "hi"])
+    v = pd.to_numeric(values, errors="coerce")
+    return v.isna() | ((v >= lo) & (v <= hi))
 
 
 def _overlap_hours(start: pd.Series, end: pd.Series, t0: pd.Series, t1: pd.Series) -> np.ndarray:

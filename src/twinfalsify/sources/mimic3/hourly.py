@@ -39,7 +39,8 @@ def convert_values(ev: pd.DataFrame) -> pd.DataFrame:
     """Apply unit conversions and AI-Clinician's temperature / FiO2 fixes.
 
     ``ev`` has icustay_id, time, itemid, source, value (raw VALUENUM). Returns icustay_id,
-    time, feature, value in contract units. Conversion: value_out = (value + offset) * scale.
+    time, itemid, feature, value in contract units. Conversion:
+    value_out = (value + offset) * scale.
     Temperature: a Celsius-item value > 70 is taken as Fahrenheit, a Fahrenheit-item value
     in (25, 45) as Celsius (AI-Clinician's 'recorded in the wrong column' fix).
     FiO2: percent-item values < 1 are fractions (x 100).
@@ -59,7 +60,8 @@ def convert_values(ev: pd.DataFrame) -> pd.DataFrame:
     fio2_pct = ((e["feature"] == "sofa_fio2") & (e["conversion"] == "none") & (v < 1)).to_numpy()
     out[fio2_pct] = v.to_numpy()[fio2_pct] * 100
     return pd.DataFrame({"icustay_id": e["icustay_id"].to_numpy(), "time": e["time"].to_numpy(),
-                         "feature": e["feature"].to_numpy(), "value": out})
+                         "itemid": e["itemid"].to_numpy(), "feature": e["feature"].to_numpy(),
+                         "value": out})
 
 
 def delete_outliers(ev: pd.DataFrame) -> pd.DataFrame:
@@ -107,41 +109,62 @@ def within_limits(feature: str, v: pd.Series) -> pd.Series:
 
 
 BP = ("SysBP", "MeanBP", "DiaBP")
-MAP_REFERENCE_H = 2.0  # the vitals' hold (sample_and_hold.csv): a reference is this recent
+BP_ROLES = {"sys": "SysBP", "dia": "DiaBP", "mean": "MeanBP"}
 
 
-def map_outside_range(ev: pd.DataFrame) -> np.ndarray:
-    """True for each MeanBP row of ``ev`` (icustay_id, time, feature, value) outside
-    [DiaBP, SysBP] of the stay's last systolic and diastolic charted at or before it, each at
-    most ``MAP_REFERENCE_H`` old (values of one instant averaged). A mean pressure lies
-    between the diastolic and the systolic by definition (MAP = DBP + (SBP - DBP) / 3 is the
-    usual approximation); one outside them is an artefact, e.g. a transducer being zeroed
-    (3 mmHg) or flushed. Only earlier or simultaneous pressures are used (causal); with one
-    reference only (e.g. no diastolic read under ``bp_items: ai_clinician``) the MAP is
-    checked against that one; a MAP with none passes."""
-    out = np.zeros(len(ev), dtype=bool)
-    is_map = (ev["feature"] == "MeanBP").to_numpy()
-    if not is_map.any():
+def bp_devices() -> pd.DataFrame:
+    """bp_devices.csv: itemid -> device and role (sys, dia, mean); ContractError for an
+    unknown role or an item listed twice."""
+    t = data_table("bp_devices.csv").astype({"itemid": "int64"})
+    bad = set(t["role"]) - set(BP_ROLES)
+    if bad:
+        raise ContractError(f"bp_devices.csv: unknown role(s) {sorted(bad)} "
+                            f"(allowed: {', '.join(BP_ROLES)})")
+    if t["itemid"].duplicated().any():
+        raise ContractError("bp_devices.csv: itemid listed twice: "
+                            f"{t.loc[t['itemid'].duplicated(), 'itemid'].tolist()}")
+    return t
+
+
+def map_outside_range(maps: pd.DataFrame, refs: pd.DataFrame) -> np.ndarray:
+    """True for each charted mean pressure of ``maps`` (icustay_id, time, itemid, value)
+    above the systolic or below the diastolic of the *same device* charted at the *same
+    time* (``refs``: icustay_id, time, itemid, value; devices and roles from
+    bp_devices.csv; several values of one device, role and instant averaged).
+
+    A mean pressure lies between the diastolic and the systolic of the same waveform by
+    definition; one outside them is an artefact of that measurement (a transducer being
+    zeroed, 3 mmHg, or flushed). A reading of another device (the cuff beside the arterial
+    line) or of another moment is a different measurement, which a real low MAP may well
+    fall below: it is never a reference. A reference must be a pressure: > 0 mmHg (a line
+    charted at zero, 0 / 0, says nothing of the mean charted beside it), and with both
+    present, systolic > diastolic (otherwise the three readings contradict one another and
+    which one is wrong cannot be told). Equal values are kept (a fully damped trace charts
+    the three equal). A MAP of an item without a device, or without a usable same-device
+    systolic or diastolic at its instant, passes. Only the MAP's own instant is read
+    (causal). A MAP deleted here is completed from the systolic and diastolic of its instant
+    (``complete_bp``), so a low pressure stays low: 41 below its own 67 / 47 becomes 53.7."""
+    out = np.zeros(len(maps), dtype=bool)
+    if not len(maps) or not len(refs):
         return out
-    q = pd.DataFrame({"row": np.flatnonzero(is_map),
-                      "icustay_id": ev["icustay_id"].to_numpy()[is_map],
-                      "time": pd.to_datetime(ev["time"].to_numpy()[is_map]),
-                      "value": ev["value"].to_numpy(float)[is_map]}).sort_values("time")
-    ref = {}
-    for f in ("SysBP", "DiaBP"):
-        r = ev[ev["feature"] == f].groupby(["icustay_id", "time"], as_index=False)["value"].mean()
-        if r.empty:
-            ref[f] = pd.Series(np.nan, index=q["row"].to_numpy())
-            continue
-        r = r.assign(time=pd.to_datetime(r["time"])).sort_values("time")
-        hit = pd.merge_asof(q[["row", "icustay_id", "time"]], r.rename(columns={"value": f}),
-                            on="time", by="icustay_id", direction="backward",
-                            tolerance=pd.Timedelta(hours=MAP_REFERENCE_H))
-        ref[f] = hit.set_index("row")[f]
-    v = q.set_index("row")["value"]
-    s, d = ref["SysBP"].reindex(v.index), ref["DiaBP"].reindex(v.index)
-    bad = (s.notna() & (v > s)) | (d.notna() & (v < d))
-    out[bad.index[bad.to_numpy()].to_numpy()] = True
+    dev = bp_devices().set_index("itemid")
+    r = refs.assign(device=refs["itemid"].map(dev["device"]),
+                    role=refs["itemid"].map(dev["role"]))
+    r = r[r["role"].isin(["sys", "dia"])]
+    if r.empty:
+        return out
+    r = r[r["value"] > 0]
+    ref = (r.groupby(["icustay_id", "time", "device", "role"])["value"].mean()
+           .unstack("role").reindex(columns=["sys", "dia"]))
+    ref = ref[~(ref["sys"] <= ref["dia"])]  # contradictory pair (NaN compares False): unusable
+    q = pd.DataFrame({"icustay_id": maps["icustay_id"].to_numpy(),
+                      "time": maps["time"].to_numpy(),
+                      "device": maps["itemid"].map(dev["device"]).to_numpy()})
+    hit = ref.reindex(pd.MultiIndex.from_frame(q))
+    v = maps["value"].to_numpy(float)
+    s, d = hit["sys"].to_numpy(float), hit["dia"].to_numpy(float)
+    with np.errstate(invalid="ignore"):
+        out = (np.isfinite(s) & (v > s)) | (np.isfinite(d) & (v < d))
     return out
 
 

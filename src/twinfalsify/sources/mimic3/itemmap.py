@@ -77,8 +77,8 @@ ITEM_LISTS: tuple[ItemList, ...] = (
     _feature("PaO2", "paO2", f"{AIC}; {MC4}measurement/bg.sql", (50821,)),
     _feature("PaCO2", "paCO2", f"{AIC}; {MC4}measurement/bg.sql", (50818,)),
     _feature("arterial pH", "Arterial_pH", f"{AIC}; {MC4}measurement/bg.sql", (50820,)),
-    _feature("FiO2", "sofa_fio2", f"{AIC}; {MC4}measurement/bg.sql (chartevents FiO2)",
-             (223835,)),
+    _feature("FiO2", "sofa_fio2", f"{AIC} (chart FiO2); {MC4}measurement/bg.sql (chart FiO2 "
+             "223835 and the blood-gas FiO2 50816, switch fio2_lab)", (223835, 50816)),
     _feature("platelets", "sofa_platelets", f"{AIC}; {MC4}measurement/complete_blood_count.sql",
              (51265,)),
     _feature("bilirubin", "sofa_bilirubin", f"{AIC}; {MC4}measurement/enzyme.sql", (50885,)),
@@ -89,16 +89,22 @@ ITEM_LISTS: tuple[ItemList, ...] = (
              (220739, 223900, 223901)),
     _feature("RASS", "sofa_rass", "AI-Clinician (GCS estimated from RASS)"),
     ItemList("vasopressors", "vasopressors.csv", None, "INPUTEVENTS_MV, INPUTEVENTS_CV",
-             f"AI-Clinician vaso_mv / vaso_cv + MIMIC-IV phenylephrine items; {MC4}medication/",
+             f"AI-Clinician vaso_mv / vaso_cv + MIMIC-IV phenylephrine items + MIMIC-IV "
+             f"angiotensin II (read, not converted); {MC4}medication/",
              (221906, 221289, 221749, 222315, 221662)),
     ItemList("IV fluids", "fluids.csv", None, "INPUTEVENTS_MV, INPUTEVENTS_CV",
              "AI-Clinician fluid_mv / fluid_cv"),
     ItemList("urine output", "urine.csv", None, "OUTPUTEVENTS",
-             f"AI-Clinician UO query; {MC4}measurement/urine_output.sql",
+             f"AI-Clinician UO query (227510 TF Residual: switch tf_residual); "
+             f"{MC4}measurement/urine_output.sql (227488 GU irrigant in: switch "
+             "urine_irrigant)",
              (226559, 226560, 226561, 226584, 226563, 226564, 226565, 226567, 226557, 226558,
               227489)),
     ItemList("cultures (chart items)", "cultures.csv", None, "CHARTEVENTS",
              "AI-Clinician culture query"),
+    ItemList("blood-pressure devices (MAP check)", "bp_devices.csv", None, "CHARTEVENTS",
+             "project: the device of each pressure item (D_ITEMS labels), so that a MAP is "
+             "checked against its own device's systolic and diastolic"),
     ItemList("blood-gas specimen", "specimens.csv", None, "LABEVENTS",
              f"{MC4}measurement/bg.sql (52033); MIMIC-III 50800"),
 )
@@ -109,6 +115,9 @@ MIMIC4_ONLY: dict[int, tuple[str, str]] = {
     229630: ("MIMIC-IV v2.0", "phenylephrine; 35,766 infusion rows in v2.0"),
     229632: ("MIMIC-IV v2.0", "phenylephrine; 7,347 infusion rows in v2.0"),
     229631: ("MIMIC-IV v3.1", "phenylephrine"),
+    229709: ("MIMIC-IV v2.0", "angiotensin II; read, not converted (with 229764: 236 rows "
+                              "in v2.0)"),
+    229764: ("MIMIC-IV v2.0", "angiotensin II; read, not converted"),
     52033: ("MIMIC-IV v2.0", "blood-gas specimen type (MIMIC-III: 50800)"),
 }
 # MIMIC-III-only items besides the CareVue ids (< 220000, not labs): its blood-gas specimen

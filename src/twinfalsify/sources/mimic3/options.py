@@ -57,6 +57,11 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "weight_missing": ("impute", "exclude"),
     "event_stay": ("nearest", "last"),
     "stays_per_patient": ("all", "first"),
+    "venous_gas": ("exclude", "keep"),
+    "screens": ("exclude", "count"),
+    "urine_irrigant": ("subtract", "ignore"),
+    "tf_residual": ("exclude", "count"),
+    "fio2_lab": ("read", "ignore"),
 }
 VARIANTS = ("project", "ai_clinician")
 
@@ -74,6 +79,11 @@ class Mimic3Options:
     weight_missing: str = "impute"
     event_stay: str = "nearest"
     stays_per_patient: str = "all"
+    venous_gas: str = "exclude"
+    screens: str = "exclude"
+    urine_irrigant: str = "subtract"
+    tf_residual: str = "exclude"
+    fio2_lab: str = "read"
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -94,7 +104,9 @@ PRESETS: dict[str, Mimic3Options] = {
                                   bp_items="ai_clinician",
                                   hold="last_value", rewritten="ai_clinician",
                                   gcs_intubated="verbal_1", weight_missing="impute",
-                                  event_stay="last", stays_per_patient="all"),
+                                  event_stay="last", stays_per_patient="all",
+                                  venous_gas="keep", screens="count", urine_irrigant="ignore",
+                                  tf_residual="count", fio2_lab="ignore"),
 }
 
 

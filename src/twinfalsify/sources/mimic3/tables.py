@@ -45,7 +45,7 @@ REQUIRED_COLUMNS: dict[str, tuple[str, ...]] = {
     "PRESCRIPTIONS": ("SUBJECT_ID", "HADM_ID", "ICUSTAY_ID", "STARTDATE", "DRUG", "ROUTE"),
     "MICROBIOLOGYEVENTS": ("SUBJECT_ID", "HADM_ID", "CHARTDATE", "CHARTTIME", "SPEC_TYPE_DESC"),
     "INPUTEVENTS_MV": ("ICUSTAY_ID", "STARTTIME", "ENDTIME", "ITEMID", "AMOUNT", "RATE",
-                       "RATEUOM", "STATUSDESCRIPTION"),
+                       "RATEUOM", "STATUSDESCRIPTION", "PATIENTWEIGHT"),
     "INPUTEVENTS_CV": ("ICUSTAY_ID", "CHARTTIME", "ITEMID", "AMOUNT", "RATE", "RATEUOM"),
 }
 # Tables read only by some options (sofa = ai_clinician: urine output).
