@@ -8,6 +8,7 @@ and the summary must warn.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 from study_helpers import build_study, twin_samples
 
 from twinfalsify import summary
@@ -44,3 +45,28 @@ def test_a_unit_error_shows_as_outputs_at_one_bound():
     md = summary.summary_markdown("s", tables)
     assert md.index("## Warnings") < md.index("## Outputs at the bounds")
     assert np.isclose(clipped["twin_at_y_lo"].max(), row["twin_at_y_lo"])
+
+
+def test_the_medians_show_the_size_of_the_error():
+    clipped, samples, hyps = _shares({"Glucose": -110.0})
+    row = clipped.set_index("outcome").loc["Glucose"]
+    mine = hyps["outcome"].to_numpy() == "Glucose"
+    twin = samples.twin.values[mine[samples.twin.group_ids()]]
+    data = samples.follow.values[mine[samples.follow.group_ids()]]
+    assert row["twin_median"] == np.median(twin) and row["data_median"] == np.median(data)
+    assert row["data_median"] - row["twin_median"] > 80  # the shift, not the clipped gap
+    (warning,) = summary.clipped_warnings(clipped.assign(twin="b"))
+    assert warning.endswith(f"(data: {row['data_at_y_lo']:.0%}); its median "
+                            f"{row['twin_median']:.4g} against the data's "
+                            f"{row['data_median']:.4g} mg/dL: a unit or scale error? The "
+                            "tests see only the clipped values")
+
+
+def test_a_bound_the_data_crowd_more_than_the_twin_is_no_warning():
+    row = {"twin": "t", "outcome": "Calcium", "twin_outputs": 100, "twin_at_y_up": 0.1,
+           "twin_median": 7.9, "data_outputs": 40, "data_at_y_up": 0.05, "data_median": 7.8}
+    both = pd.DataFrame([{**row, "twin_at_y_lo": 0.67, "data_at_y_lo": 0.93},  # data higher
+                         {**row, "twin_at_y_lo": 0.67, "data_at_y_lo": 0.30},  # margin < 0.4
+                         {**row, "twin_at_y_lo": 0.67, "data_at_y_lo": 0.20}])
+    warned = summary.clipped_warnings(both)
+    assert len(warned) == 1 and "(data: 20%)" in warned[0]
