@@ -23,7 +23,7 @@ from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURE_BY_NAME, FEATURES, T_MAX, ContractError, TwinNodes, to_array
 from twinfalsify.stored_runs import WORKER_STATS, failing_patients, restart_warning
 from twinfalsify.tables import markdown_table
-from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, twin_samples
+from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, outcome_sizes, twin_samples
 
 
 @dataclass(frozen=True)
@@ -235,6 +235,10 @@ def longitudinal_frame(
         r_bound=hoeffding_radius(w, smp.n, alpha), r_twin=hoeffding_radius(w, smp.nhat, alpha),
         r_obs=hoeffding_radius(w, smp.n_follow, alpha),
     )  # fmt: skip
+    sizes = outcome_sizes(smp)
+    out["twin_mean"] = sizes["twin_mean"].to_numpy()
+    out["twin_below"] = sizes["twin_below"].to_numpy()
+    out["twin_above"] = sizes["twin_above"].to_numpy()
     out["source_hyp_id"] = hyp_id
     return out
 
