@@ -969,6 +969,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from twinfalsify.io import load_yaml_strict
 
         data = data_of_config(load_yaml_strict(args.config) or {})
+    if data is not None:
+        from twinfalsify.sources.table import unit_suspects
+
+        for message in unit_suspects(data):
+            print(f"note: the data look atypical, so the units row compares the twin with "
+                  f"them as they are: {message}", flush=True)
     x0s = x0_from_table(args.x0) if args.x0 else (_x0_of(data) if data is not None else None)
     reference = data_reference(data) if data is not None else None
     print(f"checking twin {shlex.join(command)} (timeout_s {timeout:g}; units against "
