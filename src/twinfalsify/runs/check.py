@@ -123,7 +123,7 @@ FIXES = {
               "paths relative to where the study runs; 'python' means the study's Python)",
     "hello": "answer the first line {\"op\": \"hello\", ...} with {\"op\": \"hello\", \"ok\": "
              "true, \"name\", \"version\", \"protocol\": 1, \"features\": [{\"name\", \"unit\"} "
-             "for all 18 contract features, units exactly as in docs/twin-protocol.md], "
+             "for all 18 contract features, units exactly as in docs/reference/twin-protocol.md], "
              "\"capabilities\": {...}}",
     "one answer": "write exactly one JSON line per request and flush; send logs to stderr "
                   "(print(..., file=sys.stderr)); answer an unknown op with {\"op\": "
@@ -161,7 +161,7 @@ FIXES = {
                "acts this way can keep the warning",
     "drift": "look for a state that grows hour by hour: a step in minutes taken as hours, a "
              "rate applied per call, a unit converted again at every hour",
-    "units": "convert every output to the contract's unit (docs/twin-protocol.md, "
+    "units": "convert every output to the contract's unit (docs/reference/twin-protocol.md, "
              "'Features'): the unit named after '?' is the one the values look like",
 }
 FIX_LAG = ("apply the dose of hour h (doses[h-1]) during hour h: the answer's hour h is the "
