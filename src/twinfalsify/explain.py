@@ -82,7 +82,9 @@ def subgroup_in_words(codes: Sequence[int], outcome: str, states: StateBins) -> 
     return lines
 
 
-def _twins(results_dir: Path, twin: str | None) -> list[str]:
+def twins_with_results(results_dir: Path, twin: str | None) -> list[str]:
+    """The twins of a study with a results.parquet (only ``twin`` when given, an error
+    naming those found when it has none)."""
     found = sorted(p.name for p in (results_dir / "twins").glob("*")
                    if (p / "results.parquet").is_file())
     if twin is not None:
@@ -134,6 +136,18 @@ def sizes_in_words(row: pd.Series | None, unit: str) -> str:
             f"below y_lo, {_pct(row['twin_above'])} above y_up ({data})")
 
 
+def mean_in_words(row: pd.Series, unit: str) -> str:
+    """The twin's clipped mean against the data's bounds, from one row of a results table:
+    'mean (clipped) M unit from n_hat = N runs; data bounds [L, U] unit from n = n stays
+    (f followed these doses): inside the bounds' (or below / above, or no twin runs)."""
+    mean, lo, up = row["q_twin_hat"], row["q_lo_hat"], row["q_up_hat"]
+    where = ("below the lower bound" if mean < lo else "above the upper bound"
+             if mean > up else "inside the bounds") if np.isfinite(mean) else "no twin runs"
+    return (f"mean (clipped) {_num(mean)} {unit} from n_hat = {int(row['nhat'])} runs; data "
+            f"bounds [{_num(lo)}, {_num(up)}] {unit} from n = {int(row['n'])} stays "
+            f"({int(row['n_follow'])} followed these doses): {where}")
+
+
 def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None,
             sizes: Mapping[str, pd.DataFrame | None] | None = None) -> str:
     """The text ``python -m twinfalsify.explain`` prints. sizes: twin name ->
@@ -154,7 +168,7 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None,
     lines += [f"  {x}" for x in subgroup_in_words(list(h["bins"]), outcome, states)]
     lines.append("doses (each the D0 median of its bin):")
     lines += [f"  {x}" for x in doses_in_words(list(h["actions"]), actions)]
-    for name in _twins(r, twin):
+    for name in twins_with_results(r, twin):
         res = read_parquet(r / "twins" / name / "results.parquet", "results")
         sized = sizes[name] if sizes is not None and name in sizes else study_sizes(r, name)
         if len(res):
@@ -167,16 +181,7 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None,
         if mine.empty:
             lines.append(f"twin {name}: not tested (no results row)")
             continue
-        first = mine.iloc[0]
-        mean = first["q_twin_hat"]
-        lo, up = first["q_lo_hat"], first["q_up_hat"]
-        where = ("below the lower bound" if mean < lo else "above the upper bound"
-                 if mean > up else "inside the bounds") if np.isfinite(mean) else "no twin runs"
-        lines.append(f"twin {name}: mean (clipped) {_num(mean)} {unit} from n_hat = "
-                     f"{int(first['nhat'])} runs; data bounds [{_num(lo)}, {_num(up)}] "
-                     f"{unit} from n = "
-                     f"{int(first['n'])} stays ({int(first['n_follow'])} followed these "
-                     f"doses): {where}")
+        lines.append(f"twin {name}: {mean_in_words(mine.iloc[0], unit)}")
         if sized is not None and hyp_id in sized.index:
             if words := sizes_in_words(sized.loc[hyp_id], unit):
                 lines.append(words)
@@ -185,8 +190,6 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None,
             lines.append(f"  {m.method:<10} H_{m.side}: p = {m.p_value:.3g}, {verdict} "
                          f"({_threshold_words(m)})")
     return "\n".join(lines)
-
-
 
 
 def _threshold_words(m: object) -> str:
