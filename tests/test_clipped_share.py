@@ -70,3 +70,49 @@ def test_a_bound_the_data_crowd_more_than_the_twin_is_no_warning():
                          {**row, "twin_at_y_lo": 0.67, "data_at_y_lo": 0.20}])
     warned = summary.clipped_warnings(both)
     assert len(warned) == 1 and "(data: 20%)" in warned[0]
+
+
+def test_the_summary_warnings_read_back_and_only_when_written_in_this_run(tmp_path):
+    import os
+
+    row = {"twin": "t", "outcome": "Calcium", "twin_outputs": 100, "twin_at_y_up": 0.1,
+           "twin_median": 7.9, "data_outputs": 40, "data_at_y_up": 0.05, "data_median": 7.8,
+           "twin_at_y_lo": 0.9, "data_at_y_lo": 0.1}
+    tables = {"clipped": pd.DataFrame([row, {**row, "twin": "u"}]),
+              "failing": pd.DataFrame({"warning": ["twin t: 3 patients fail every run"]}),
+              "cohort": pd.DataFrame({"n": [1]})}
+    md = tmp_path / "summary.md"
+    md.write_text(summary.summary_markdown("s", tables))
+    want = summary.summary_warnings(tables)
+    assert len(want) == 3 and want[0] == "twin t: 3 patients fail every run"
+    assert summary.warnings_in_summary(md) == want
+    os.utime(md, (1000.0, 1000.0))  # written before this run started: not this run's
+    assert summary.warnings_in_summary(md, since=2000.0) == []
+    assert summary.warnings_in_summary(md, since=500.0) == want
+    assert summary.warnings_in_summary(tmp_path / "none.md") == []
+    md.write_text(summary.summary_markdown("s", {"cohort": tables["cohort"]}))
+    assert summary.warnings_in_summary(md) == []
+
+
+def test_a_studys_warnings_end_its_output(test_study, tmp_path):
+    """config/test.yaml's biased twin (HR + 25 /min) piles its HR outputs at y_up: the
+    warning is in summary.md, logged by the summary rule, and the run's last lines say it,
+    after Snakemake's own closing lines. A run that writes no summary repeats none."""
+    from conftest import copy_study, run_snakemake
+
+    work = copy_study(test_study[0], tmp_path / "study")
+    done = run_snakemake(work, work / "test.yaml", "--cores", "2", "--forcerun", "summary")
+    assert done.returncode == 0, done.stderr[-3000:]
+    warnings = summary.warnings_in_summary(work / "results" / "test" / "summary.md")
+    assert any(w.startswith("twin biased: ") and "of its HR outputs are at or beyond y_up"
+               in w for w in warnings), warnings
+    lines = done.stderr.rstrip().splitlines()
+    n = len(warnings)
+    assert lines[-n - 1:] == ["The study's warnings (results/test/summary.md):",
+                              *[f"WARNING: {w}" for w in warnings]], lines[-8:]
+    closing = max(k for k, ln in enumerate(lines) if "steps (100%) done" in ln)
+    assert closing < len(lines) - n - 1  # after Snakemake's closing lines
+    for w in warnings:  # the summary rule's log lines, before
+        assert any(ln.endswith(f"WARNING: {w}") for ln in lines[:closing])
+    again = run_snakemake(work, work / "test.yaml", "--cores", "2")
+    assert again.returncode == 0 and "WARNING: twin" not in again.stderr

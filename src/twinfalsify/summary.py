@@ -506,7 +506,9 @@ _TITLES = {
 }
 
 
-def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+def summary_warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+    """The study's warnings, as the summary lists them under "Warnings" (failing runs and
+    worker restarts, then outputs piled up at a bound)."""
     clipped = tables.get("clipped")
     failing = tables.get("failing")
     return ([*failing["warning"]] if failing is not None else []) + (
@@ -515,7 +517,7 @@ def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
 
 def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
     out = [f"# Study `{study}`: summary", ""]
-    warnings = _warnings(tables)
+    warnings = summary_warnings(tables)
     if warnings:
         out += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
     for key, title in _TITLES.items():
@@ -524,6 +526,28 @@ def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         df = tables[key]
         out += [f"## {title}", "", _md(df) if len(df) else "_none_", ""]
     return "\n".join(out)
+
+
+def warnings_in_summary(md: str | Path, since: float | None = None) -> list[str]:
+    """The warnings a summary.md lists (``summary_markdown``'s "## Warnings" section), one
+    string each; none when the file is missing or, with ``since`` (a time.time()), was
+    written before it (a summary this run did not write)."""
+    path = Path(md)
+    try:
+        if since is not None and path.stat().st_mtime < since:
+            return []
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    if "## Warnings" not in lines:
+        return []
+    out = []
+    for line in lines[lines.index("## Warnings") + 1:]:
+        if line.startswith("## "):
+            break
+        if line.startswith("- "):
+            out.append(line[2:])
+    return out
 
 
 def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
@@ -535,7 +559,7 @@ def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
         f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
     ]
-    warnings = _warnings(tables)
+    warnings = summary_warnings(tables)
     if warnings:
         out.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings)
                    + "</ul>")
