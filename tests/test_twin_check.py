@@ -280,3 +280,27 @@ def test_units_are_screened_against_the_data_when_given():
     good = run_checks(FAULTY_TWIN, ENV, timeout_s=2.0, x0s=X0, reference=reference,
                       startup_timeout_s=4.0)
     assert next(o for o in good if o.name == "units").ok, report(good)
+
+
+def test_an_unflushed_twin_is_named_within_seconds_and_a_slow_start_is_not(monkeypatch):
+    """With the waits a study uses (hello may take max(timeout_s, the startup timeout)),
+    a twin that never flushes stdout is named after FIRST_ANSWER_S, not after its whole
+    timeout; a twin that flushes but answers hello after the first-answer deadline passes."""
+    import time
+
+    from twinfalsify.runs import check
+
+    start = time.monotonic()
+    outcomes = run_checks([*FAULTY_TWIN, "--mode", "unflushed"], ENV, timeout_s=600.0,
+                          x0s=X0)
+    took = time.monotonic() - start
+    hello = next(o for o in outcomes if o.name == "hello")
+    assert hello.ok is False and hello.fix == HINT_UNFLUSHED, report(outcomes)
+    assert hello.detail.startswith(f"no answer within {check.FIRST_ANSWER_S:g} s: does the "
+                                   "twin flush stdout after each line?"), hello.detail
+    assert took < check.FIRST_ANSWER_S + 25, took  # seconds, not the 600 s timeout
+    monkeypatch.setattr(check, "FIRST_ANSWER_S", 1.0)
+    slow = run_checks([*FAULTY_TWIN, "--hello-delay", "2.5"], ENV, timeout_s=2.0, x0s=X0,
+                      startup_timeout_s=30.0)
+    assert all(o.ok is not False for o in slow), report(slow)
+    assert next(o for o in slow if o.name == "hello").ok is True

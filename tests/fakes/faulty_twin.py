@@ -61,7 +61,8 @@ Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 has no version),
 ``no_hello`` (exit at once), ``unflushed`` (never flush stdout: answers sit in the pipe's
 buffer until the twin exits), ``no_bye`` (shutdown is ignored: no bye, no exit until
-stdin closes), ``silent_unknown`` (an unknown op gets no answer).
+stdin closes), ``silent_unknown`` (an unknown op gets no answer). ``--hello-delay S``
+waits S seconds before each hello answer (a twin that takes long to start, but flushes).
 
 ``--batch N`` advertises ``capabilities.batch: N`` and answers
 ``simulate_batch`` messages run by run with the same modes: ``crash`` and
@@ -291,6 +292,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--mode", action="append", default=[], help="MODE[:SELECTOR]")
     parser.add_argument("--delay", type=float, default=1.0, help="seconds per slow run")
+    parser.add_argument("--hello-delay", type=float, default=0.0,
+                        help="seconds before the hello answer (a slow start)")
     parser.add_argument("--irreversible-hour", type=int, default=2)
     parser.add_argument("--state-dir", type=Path, help="marker files for crash_once")
     parser.add_argument("--max-hours", type=int, default=None)
@@ -342,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             send({"op": "bye"})
             return 0
         if msg["op"] == "hello":
+            time.sleep(args.hello_delay)
             feats = [{"name": f.name, "unit": f.unit} for f in FEATURE_TABLE]
             if "bad_hello" in twin_modes:
                 feats = [f for f in feats if f["name"] != "HR"]

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -67,7 +68,13 @@ from typing import Any
 
 import numpy as np
 
-from twinfalsify.runs.protocol import ProtocolError, check_hello, check_result, check_results
+from twinfalsify.runs.protocol import (
+    ProtocolError,
+    check_hello,
+    check_result,
+    check_results,
+    encode,
+)
 from twinfalsify.runs.worker import (
     SHUTDOWN_GRACE_S,
     STARTUP_TIMEOUT_S,
@@ -166,6 +173,15 @@ FIXES = {
 }
 FIX_LAG = ("apply the dose of hour h (doses[h-1]) during hour h: the answer's hour h is the "
            "state at the END of hour h, after that hour's dose (not the state before it)")
+# how long the check waits for a twin's first answer before it tells a slow start from an
+# unflushed stdout (``Check._first_hello``)
+FIRST_ANSWER_S = 5.0
+
+
+class _Unflushed(Exception):
+    """The twin's answers sit in an unflushed stdout buffer."""
+
+
 HINT_UNFLUSHED = ("flush stdout after every answer: print(..., flush=True) or "
                   "sys.stdout.flush() (or run python -u); a pipe holds unflushed lines")
 HINT_SLOW_START = ("if the twin needs long to start (loading a model, an engine), raise "
@@ -308,7 +324,10 @@ class Checker:
             self.add("starts", False, str(exc))
             return None
         try:
-            msg = worker.ask({"op": "hello", "protocol": 1}, self.hello_wait)
+            msg = self._first_hello(worker)
+        except _Unflushed as exc:
+            self.add("hello", False, str(exc), HINT_UNFLUSHED)
+            return None
         except WorkerTimeout:
             self.add("hello", False, *self._why_no_hello(worker))
             return None
@@ -333,6 +352,52 @@ class Checker:
             self.add("hello", False, f"max_hours {max_hours} < T = {T_MAX}: a study asks for "
                      f"up to {T_MAX} hours (or set design.horizon <= {max_hours})")
         return worker
+
+    def _first_hello(self, worker: Worker) -> dict[str, Any]:
+        """The hello answer, within ``hello_wait``; a twin silent for FIRST_ANSWER_S is
+        told apart from a slow starter at once: a second copy is sent hello with its stdin
+        closed, which makes a buffering twin exit and flush. When that copy answers while
+        the first, started earlier, is still silent, the first holds its answer in an
+        unflushed buffer (``_Unflushed``)."""
+        hello = {"op": "hello", "protocol": 1}
+        first = min(FIRST_ANSWER_S, self.hello_wait)
+        try:
+            return worker.ask(hello, first)
+        except WorkerTimeout:
+            if self.hello_wait <= first:
+                raise
+        probe = self.start()
+        try:
+            assert probe.proc.stdin is not None
+            os.write(probe.proc.stdin.fileno(), encode(hello).encode("utf-8"))
+            probe.proc.stdin.close()
+        except OSError:
+            pass
+        answered: list[bool] = []
+
+        def probe_answered() -> bool:
+            while not answered and not probe.lines.empty():
+                line = probe.lines.get_nowait()
+                if line is None:
+                    break
+                if '"hello"' in line:
+                    answered.append(True)
+            return bool(answered)
+
+        try:
+            return worker.answer(self.hello_wait - first, until=probe_answered)
+        except WorkerTimeout:
+            if not answered:
+                raise
+        try:  # the first copy may have answered in the same instant
+            return worker.answer(1.0)
+        except WorkerTimeout:
+            raise _Unflushed(f"no answer within {first:g} s: does the twin flush stdout "
+                             "after each line? (a second copy answered hello only when its "
+                             "stdin was closed, the first, started earlier, is still "
+                             "silent)") from None
+        finally:
+            probe.kill()
 
     @property
     def hello_wait(self) -> float:
