@@ -122,7 +122,7 @@ def test_exit_statuses_and_the_report(tmp_path, capsys):
     assert f"summary: {n_rej} newly rejected, {n_pass} newly passing of 40 hypotheses" in out
     first = ch[ch["change"] == NEWLY_REJECTED].iloc[0]
     assert f"  {first['outcome']} at hour {first['t']}\n" in out
-    assert f"    hypothesis {first['hyp_id']} (causal), newly rejected by " in out
+    assert f"    hypothesis {first['hyp_id']} (causal), newly rejected under " in out
     # both sides' means in explain's words
     q = 90.0 + first["hyp_id"] - 10
     unit = FEATURE_BY_NAME[first["outcome"]].unit

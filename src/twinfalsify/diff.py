@@ -174,7 +174,7 @@ def report(a: Side, b: Side, sizes: bool = True) -> tuple[str, int]:
                 by = "; ".join(f"{m.method} (H_{m.side}: A p = {_p(m.p_a)}, B p = "
                                f"{_p(m.p_b)})" for m in hg.itertuples())
                 lines.append(f"    hypothesis {int(hyp_id)} ({hg['kind'].iloc[0]}), "
-                             f"{what} by {by}")
+                             f"{what} under {by}")
                 for s in (a, b):
                     lines.append(f"      {s.name()}: "
                                  f"{mean_in_words(rows[s.label].loc[hyp_id], unit)}")
