@@ -17,6 +17,7 @@ from twinfalsify.explain import (  # noqa: E402
 from twinfalsify.figures import longitudinal, longitudinal_title  # noqa: E402
 from twinfalsify.io import log, run_rule, write_text  # noqa: E402
 from twinfalsify.summary import load_study_twin, longitudinal_frame  # noqa: E402
+from twinfalsify.twin_tests import outcome_sizes  # noqa: E402
 
 
 def main(sm):
@@ -27,6 +28,7 @@ def main(sm):
     alpha = float(sm.params.testing["alpha"])
     correction = str(st.results["correction"].iloc[0]) if len(st.results) else "holm"
     results_dir = Path(sm.input.hypotheses).parent.parent
+    sizes = {twin: outcome_sizes(st.samples).set_index(st.hyps["hyp_id"].to_numpy())}
     sections = []
     for hyp_id in ids:
         # the hypothesis's own path, hours 1..t (t = 1: one hour, drawn as a box)
@@ -40,7 +42,7 @@ def main(sm):
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=110)
         plt.close(fig)
-        sections.append((hyp_id, explain(results_dir, hyp_id, twin), buf.getvalue()))
+        sections.append((hyp_id, explain(results_dir, hyp_id, twin, sizes), buf.getvalue()))
     log.info("twin %s: %d of %d rejections explained (%s)", twin, len(ids), n_rejected, ids)
     write_text(explained_html(twin, sections, n_rejected), sm.output[0])
 

@@ -1,5 +1,6 @@
 """Rule summary: cohort, split, hypotheses, twin runs, clamps, rejections, untestable."""
 
+import logging
 import sys
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from twinfalsify.summary import (  # noqa: E402
     study_summary,
     summary_html,
     summary_markdown,
+    summary_warnings,
     tie_table,
 )
 
@@ -40,6 +42,9 @@ def main(sm):
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)
+    # also printed last by the Snakefile's onsuccess, after Snakemake's closing lines
+    for warning in summary_warnings(tables):
+        logging.getLogger("summary").warning("WARNING: %s", warning)
 
 
 run_rule(snakemake, main)  # noqa: F821

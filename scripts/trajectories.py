@@ -17,9 +17,11 @@ def main(sm):
 
         traj = generate(source.get("synthetic"), seed=int(sm.params.seed))
     elif source["kind"] == "table":
-        from twinfalsify.sources.table import read_table
+        from twinfalsify.sources.table import check_units, read_table
 
         traj = read_table(source["table"]["path"])
+        # before any twin runs: a table in another unit would be blamed on the twin
+        check_units(traj, source["table"]["path"])
     else:
         from twinfalsify.sources.mimic_rule import extract_for_study
 

@@ -6,9 +6,12 @@ prints the patient subgroup (sex, age quartile and the outcome above or below it
 at each hour, with the numbers and units behind each bin), the action sequence as doses
 (the D0 median dose of each bin the twin was given, with the bin's range), the outcome and
 hour, the bounds [y_lo, y_up] the outcomes are clipped to, and per twin the twin's mean
-against the data's bounds with n and n_hat and every method's p-value and decision per side.
-It reads only what a study wrote: design/hypotheses.parquet, design/bins.json,
-design/actions.json and twins/<twin>/results.parquet.
+against the data's bounds with n and n_hat, the size of the difference the clipping hides
+(the twin's unclipped mean and median and its shares below y_lo and above y_up, beside the
+data's followers'), and every method's p-value and decision per side with the threshold of
+the correction it was held to. It reads only what a study wrote: design/hypotheses.parquet,
+design/bins.json, design/actions.json and twins/<twin>/results.parquet, and for the sizes
+the files the tests read (``twin_tests.load_twin_tests``), when they are there.
 """
 
 from __future__ import annotations
@@ -17,15 +20,17 @@ import argparse
 import base64
 import html
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, ActionBins, StateBins
+from twinfalsify.inference.multiple_testing import thresholds_within
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURE_BY_NAME, ContractError
+from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, outcome_sizes
 
 QUARTILES = ("1st", "2nd", "3rd", "4th")
 
@@ -77,7 +82,9 @@ def subgroup_in_words(codes: Sequence[int], outcome: str, states: StateBins) -> 
     return lines
 
 
-def _twins(results_dir: Path, twin: str | None) -> list[str]:
+def twins_with_results(results_dir: Path, twin: str | None) -> list[str]:
+    """The twins of a study with a results.parquet (only ``twin`` when given, an error
+    naming those found when it has none)."""
     found = sorted(p.name for p in (results_dir / "twins").glob("*")
                    if (p / "results.parquet").is_file())
     if twin is not None:
@@ -91,8 +98,60 @@ def _twins(results_dir: Path, twin: str | None) -> list[str]:
     return found
 
 
-def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None) -> str:
-    """The text ``python -m twinfalsify.explain`` prints."""
+def stored_paths(results_dir: str | Path, twin: str) -> dict[str, Path]:
+    """The files ``twin_tests.load_twin_tests`` reads, where a study writes them."""
+    r = Path(results_dir)
+    return {"d": r / "d.parquet", "bins": r / "design" / "bins.json",
+            "hypotheses": r / "design" / "hypotheses.parquet",
+            "counts": r / "observational" / "counts.parquet",
+            "follow": r / "observational" / "follow.parquet", "plan": r / "twin_plan.json",
+            "runs": r / "twins" / twin / "runs.parquet"}
+
+
+def study_sizes(results_dir: str | Path, twin: str) -> pd.DataFrame | None:
+    """``twin_tests.outcome_sizes`` of a stored twin, indexed by hyp_id; None when the
+    study's files the tests read are not all there."""
+    paths = stored_paths(results_dir, twin)
+    if set(paths) != set(STORED_INPUTS) or not all(p.is_file() for p in paths.values()):
+        return None
+    tt = load_twin_tests(paths)
+    return outcome_sizes(tt.samples).set_index(tt.hyps["hyp_id"].to_numpy())
+
+
+def _pct(v: float) -> str:
+    return f"{v:.0%}" if np.isfinite(v) else "-"
+
+
+def sizes_in_words(row: pd.Series | None, unit: str) -> str:
+    """The line on the size of the difference: unclipped mean and median and the shares
+    beyond each bound, the twin's beside the data's followers'."""
+    if row is None or not np.isfinite(row["twin_mean"]):
+        return ""
+    data = (f"data's followers: mean {_num(row['data_mean'])}, median "
+            f"{_num(row['data_median'])} {unit}, {_pct(row['data_below'])} below y_lo, "
+            f"{_pct(row['data_above'])} above y_up" if np.isfinite(row["data_mean"])
+            else "no data follower")
+    return (f"  unclipped: twin mean {_num(row['twin_mean'])}, median "
+            f"{_num(row['twin_median'])} {unit}, {_pct(row['twin_below'])} of its outputs "
+            f"below y_lo, {_pct(row['twin_above'])} above y_up ({data})")
+
+
+def mean_in_words(row: pd.Series, unit: str) -> str:
+    """The twin's clipped mean against the data's bounds, from one row of a results table:
+    'mean (clipped) M unit from n_hat = N runs; data bounds [L, U] unit from n = n stays
+    (f followed these doses): inside the bounds' (or below / above, or no twin runs)."""
+    mean, lo, up = row["q_twin_hat"], row["q_lo_hat"], row["q_up_hat"]
+    where = ("below the lower bound" if mean < lo else "above the upper bound"
+             if mean > up else "inside the bounds") if np.isfinite(mean) else "no twin runs"
+    return (f"mean (clipped) {_num(mean)} {unit} from n_hat = {int(row['nhat'])} runs; data "
+            f"bounds [{_num(lo)}, {_num(up)}] {unit} from n = {int(row['n'])} stays "
+            f"({int(row['n_follow'])} followed these doses): {where}")
+
+
+def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None,
+            sizes: Mapping[str, pd.DataFrame | None] | None = None) -> str:
+    """The text ``python -m twinfalsify.explain`` prints. sizes: twin name ->
+    ``study_sizes`` (computed from the study's files for a twin not in it)."""
     r = Path(results_dir)
     hyps = read_parquet(r / "design" / "hypotheses.parquet", "hypotheses")
     row = hyps[hyps["hyp_id"] == hyp_id]
@@ -109,29 +168,37 @@ def explain(results_dir: str | Path, hyp_id: int, twin: str | None = None) -> st
     lines += [f"  {x}" for x in subgroup_in_words(list(h["bins"]), outcome, states)]
     lines.append("doses (each the D0 median of its bin):")
     lines += [f"  {x}" for x in doses_in_words(list(h["actions"]), actions)]
-    for name in _twins(r, twin):
+    for name in twins_with_results(r, twin):
         res = read_parquet(r / "twins" / name / "results.parquet", "results")
+        sized = sizes[name] if sizes is not None and name in sizes else study_sizes(r, name)
+        if len(res):
+            level, rank, size = thresholds_within(
+                res["p_value"].to_numpy(),
+                (res["method"].astype(str) + "\x00" + res["kind"].astype(str)).to_numpy(),
+                float(res["alpha"].iloc[0]), str(res["correction"].iloc[0]))
+            res = res.assign(threshold=level, rank=rank, family=size)
         mine = res[res["hyp_id"] == hyp_id]
         if mine.empty:
             lines.append(f"twin {name}: not tested (no results row)")
             continue
-        first = mine.iloc[0]
-        mean = first["q_twin_hat"]
-        lo, up = first["q_lo_hat"], first["q_up_hat"]
-        where = ("below the lower bound" if mean < lo else "above the upper bound"
-                 if mean > up else "inside the bounds") if np.isfinite(mean) else "no twin runs"
-        lines.append(f"twin {name}: mean (clipped) {_num(mean)} {unit} from n_hat = "
-                     f"{int(first['nhat'])} runs; data bounds [{_num(lo)}, {_num(up)}] "
-                     f"{unit} from n = "
-                     f"{int(first['n'])} stays ({int(first['n_follow'])} followed these "
-                     f"doses): {where}")
+        lines.append(f"twin {name}: {mean_in_words(mine.iloc[0], unit)}")
+        if sized is not None and hyp_id in sized.index:
+            if words := sizes_in_words(sized.loc[hyp_id], unit):
+                lines.append(words)
         for m in mine.sort_values(["method", "side"]).itertuples():
             verdict = "REJECTED" if m.rejected else "not rejected"
             lines.append(f"  {m.method:<10} H_{m.side}: p = {m.p_value:.3g}, {verdict} "
-                         f"(alpha {m.alpha:g}, {m.correction})")
+                         f"({_threshold_words(m)})")
     return "\n".join(lines)
 
 
+def _threshold_words(m: object) -> str:
+    """The level a p-value was held to: 'Holm threshold T at rank r of m in its family
+    (method, kind), alpha A'."""
+    name = {"holm": "Holm", "bonferroni": "Bonferroni", "by": "Benjamini-Yekutieli",
+            "none": "uncorrected"}.get(m.correction, m.correction)
+    return (f"{name} threshold {m.threshold:.3g} at rank {m.rank} of {m.family} in its "
+            f"family ({m.method}, {m.kind}), alpha {m.alpha:g}")
 
 
 def rejections_to_explain(results: pd.DataFrame, k: int) -> tuple[list[int], int]:

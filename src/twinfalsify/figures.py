@@ -16,6 +16,7 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE  # noqa: E402
 from twinfalsify.io import write_atomic  # noqa: E402
 from twinfalsify.schema import OUTCOMES  # noqa: E402
 
@@ -182,11 +183,42 @@ def save_all(fig: plt.Figure, *paths: str | Path) -> None:
     plt.close(fig)
 
 
+ORDINALS = ("1st", "2nd", "3rd", "4th")
+
+
+def doses_in_brief(actions) -> str:
+    """The dose sequence in words: per hour 'none' or the D0 dose quartiles given
+    ('IV Q2 + vaso Q1'), repeats folded ('none x 3')."""
+    words = []
+    for a in actions:
+        iv, vaso = int(a) // N_DOSE_BINS, int(a) % N_DOSE_BINS
+        parts = ([f"IV Q{iv}"] if iv else []) + ([f"vaso Q{vaso}"] if vaso else [])
+        words.append(" + ".join(parts) or "none")
+    out: list[list] = []
+    for w in words:
+        if out and out[-1][0] == w:
+            out[-1][1] += 1
+        else:
+            out.append([w, 1])
+    return ", ".join(w if k == 1 else f"{w} x {k}" for w, k in out)
+
+
+def patients_in_brief(outcome: str, bins) -> str:
+    """The B-sets in words: 'every patient', or sex, age quartile and the outcome above (+)
+    or at or below (-) the D0 median at hours 0..t."""
+    if all(int(b) == WHOLE_SPACE for b in bins):
+        return "every patient"
+    base = int(bins[0]) - int(bins[0]) % 2
+    sex, age_q = base // 8, (base % 8) // 2
+    signs = "".join("+" if int(b) % 2 else "-" for b in bins)
+    return (f"{'female' if sex else 'male'}, {ORDINALS[age_q]} age quartile, {outcome} vs "
+            f"D0 median at hours 0-{len(bins) - 1}: {signs}")
+
+
 def describe_hypothesis(outcome: str, t: int, actions, bins) -> str:
-    """Short text: outcome at t, action codes and B-set codes (-1 = whole space)."""
-    a = "-".join(str(int(x)) for x in actions)
-    b = "all" if all(int(x) == -1 for x in bins) else "-".join(str(int(x)) for x in bins)
-    return f"{outcome}, t = {t}, a = {a}, B = {b}"
+    """Short text: outcome at t, the doses and the patients in words."""
+    return (f"{outcome}, t = {t}; doses {doses_in_brief(actions)}; "
+            f"{patients_in_brief(outcome, bins)}")
 
 
 # -- item 4: longitudinal bounds ---------------------------------------------------------------
@@ -216,12 +248,20 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
                 capsize=3, label=r"twin $\hat Q_{twin}$")  # fmt: skip
     ax.errorbar(t + 0.06, f["q_obs_hat"], yerr=f["r_obs"], fmt="s--", color=COLORS["naive"],
                 capsize=3, label="naive observational mean")  # fmt: skip
+    if "twin_mean" in f and np.isfinite(f["twin_mean"].to_numpy(float)).any():
+        # the size of the difference the clipping hides: the twin's unclipped mean
+        ax.plot(t - 0.06, f["twin_mean"], "x", color=COLORS["twin"], ms=8,
+                label="twin mean, unclipped")
     ax.set_xticks(t)
-    ax.set_xticklabels([f"{int(s)}\nn={n}, $\\hat n$={nh}" for s, n, nh in
-                        zip(f["t"], f["n"], f["nhat"], strict=True)], fontsize=8)  # fmt: skip
+    beyond = ([f"\ntwin beyond y_lo/y_up {b:.0%}/{a:.0%}" for b, a in
+               zip(f["twin_below"], f["twin_above"], strict=True)]
+              if "twin_below" in f else [""] * len(f))
+    ax.set_xticklabels([f"{int(s)}\nn={n}, $\\hat n$={nh}{b}" for s, n, nh, b in
+                        zip(f["t"], f["n"], f["nhat"], beyond, strict=True)],
+                       fontsize=8)  # fmt: skip
     ax.set_xlabel("hour t (trajectories entering n, twin runs entering $\\hat n$)")
     outcome = f["outcome"].iloc[0]
-    ax.set_ylabel(f"clipped {unit_label(outcome)}")
+    ax.set_ylabel(f"{unit_label(outcome)}\n(clipped to [y_lo, y_up]; x: unclipped)")
     last = f.iloc[-1]
     default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
     ax.set_title(title or default, fontsize=10)
@@ -237,9 +277,8 @@ def longitudinal_title(twin: str, frame: pd.DataFrame, kind: str,
     as ``longitudinal`` draws them) and, per test method, the hours t whose own hypothesis
     that method rejected after ``correction``; methods with the same hours share a clause."""
     last = frame.iloc[-1]
-    head = (f"twin {twin}: {last['outcome']} ({kind}), a = "
-            f"{'-'.join(str(int(a)) for a in last['actions'])}, "
-            f"B = {'-'.join(str(int(b)) for b in last['bins'])}")  # fmt: skip
+    head = (f"twin {twin}: {last['outcome']} ({kind}), doses {doses_in_brief(last['actions'])}"
+            f"\n{patients_in_brief(last['outcome'], last['bins'])}")  # fmt: skip
     groups: dict[tuple[int, ...], list[str]] = {}
     for method, hours in rejected_hours.items():
         groups.setdefault(tuple(sorted(hours)), []).append(method)

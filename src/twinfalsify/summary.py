@@ -21,10 +21,10 @@ from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.order import content_keys, tied_share
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
-from twinfalsify.schema import FEATURES, T_MAX, ContractError, TwinNodes, to_array
+from twinfalsify.schema import FEATURE_BY_NAME, FEATURES, T_MAX, ContractError, TwinNodes, to_array
 from twinfalsify.stored_runs import WORKER_STATS, failing_patients, restart_warning
 from twinfalsify.tables import markdown_table
-from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, twin_samples
+from twinfalsify.twin_tests import STORED_INPUTS, load_twin_tests, outcome_sizes, twin_samples
 
 
 @dataclass(frozen=True)
@@ -236,6 +236,10 @@ def longitudinal_frame(
         r_bound=hoeffding_radius(w, smp.n, alpha), r_twin=hoeffding_radius(w, smp.nhat, alpha),
         r_obs=hoeffding_radius(w, smp.n_follow, alpha),
     )  # fmt: skip
+    sizes = outcome_sizes(smp)
+    out["twin_mean"] = sizes["twin_mean"].to_numpy()
+    out["twin_below"] = sizes["twin_below"].to_numpy()
+    out["twin_above"] = sizes["twin_above"].to_numpy()
     out["source_hyp_id"] = hyp_id
     return out
 
@@ -349,16 +353,18 @@ def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None)
     return out
 
 
-CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2)
+CLIPPED_WARN = 0.6  # a twin share at one bound above this is warned about (data: ~0.2) ...
+CLIPPED_MARGIN = 0.4  # ... when it is also this much above the data's own share there
 
 
 def clipped_shares(hyps: pd.DataFrame, samples: HypothesisSamples) -> pd.DataFrame:
     """Per outcome: the share of the twin's outputs (every run entering a hypothesis) at or
-    beyond y_lo and at or beyond y_up, beside the data's followers' shares.
+    beyond y_lo and at or beyond y_up, and their unclipped median, beside the data's
+    followers' (their shares and median).
 
     The tests clip outcomes to [y_lo, y_up] (the 0.2 / 0.8 quantiles of the D0 subset, so
     about a fifth of the data sits at each bound): a twin in the wrong unit piles up at one
-    bound, where a test may not reject it, and this table shows it.
+    bound, where a test may not reject it, and this table shows it and how far off it is.
     """
     rows = []
     outcome = hyps["outcome"].to_numpy()
@@ -366,29 +372,40 @@ def clipped_shares(hyps: pd.DataFrame, samples: HypothesisSamples) -> pd.DataFra
         gid = ragged.group_ids()
         lo = ragged.values <= samples.y_lo[gid]
         up = ragged.values >= samples.y_up[gid]
-        frame = pd.DataFrame({"outcome": outcome[gid], "lo": lo, "up": up})
+        frame = pd.DataFrame({"outcome": outcome[gid], "lo": lo, "up": up,
+                              "value": ragged.values})
         g = frame.groupby("outcome")
         rows.append(pd.DataFrame({f"{part}_outputs": g.size(),
                                   f"{part}_at_y_lo": g["lo"].mean(),
-                                  f"{part}_at_y_up": g["up"].mean()}))
+                                  f"{part}_at_y_up": g["up"].mean(),
+                                  f"{part}_median": g["value"].median()}))
     out = pd.concat(rows, axis=1).reset_index().rename(columns={"index": "outcome"})
     counts = ["twin_outputs", "data_outputs"]
     out[counts] = out[counts].fillna(0).astype("int64")
-    return out[["outcome", "twin_outputs", "twin_at_y_lo", "twin_at_y_up", "data_outputs",
-                "data_at_y_lo", "data_at_y_up"]]
+    return out[list(CLIPPED_COLUMNS)]
+
+
+CLIPPED_COLUMNS = ("outcome", "twin_outputs", "twin_at_y_lo", "twin_at_y_up", "twin_median",
+                   "data_outputs", "data_at_y_lo", "data_at_y_up", "data_median")
 
 
 def clipped_warnings(clipped: pd.DataFrame) -> list[str]:
     """One line per twin and outcome whose outputs sit at one bound more than CLIPPED_WARN
-    of the time (a unit or scale error the tests may not be able to reject)."""
+    of the time and CLIPPED_MARGIN more often than the data's followers do (a unit or scale
+    error the tests may not be able to reject; a bound the data crowd too is no sign)."""
     out = []
     for r in clipped.itertuples():
         for side in ("lo", "up"):
             share = getattr(r, f"twin_at_y_{side}")
-            if share > CLIPPED_WARN:
+            data = getattr(r, f"data_at_y_{side}")
+            data = 0.0 if pd.isna(data) else data
+            if share > CLIPPED_WARN and share - data > CLIPPED_MARGIN:
+                unit = FEATURE_BY_NAME[r.outcome].unit
                 out.append(f"twin {r.twin}: {share:.0%} of its {r.outcome} outputs are at or "
-                           f"beyond y_{side} (data: {getattr(r, f'data_at_y_{side}'):.0%}): "
-                           "a unit or scale error? The tests see only the clipped values")
+                           f"beyond y_{side} (data: {data:.0%}); its median "
+                           f"{r.twin_median:.4g} against the data's {r.data_median:.4g} "
+                           f"{unit}: a unit or scale error? The tests see only the clipped "
+                           "values")
     return out
 
 
@@ -485,9 +502,7 @@ def study_summary(
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
         "failing": pd.DataFrame({"warning": failing}, dtype=object),
         "workers": pd.DataFrame(worker_rows, columns=["twin", "shard", *WORKER_STATS]),
-        "clipped": cat(clip_rows, ["twin", "outcome", "twin_outputs", "twin_at_y_lo",
-                                   "twin_at_y_up", "data_outputs", "data_at_y_lo",
-                                   "data_at_y_up"]),
+        "clipped": cat(clip_rows, ["twin", *CLIPPED_COLUMNS]),
     }
 
 
@@ -506,11 +521,13 @@ _TITLES = {
     "workers": "Twin worker restarts per shard (served twins): crashes (died during a "
                "request), hangs (killed at timeout_s), malformed answers",
     "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
-               "y_up, per twin and outcome",
+               "y_up, and their unclipped medians, per twin and outcome",
 }
 
 
-def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+def summary_warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
+    """The study's warnings, as the summary lists them under "Warnings" (failing runs and
+    worker restarts, then outputs piled up at a bound)."""
     clipped = tables.get("clipped")
     failing = tables.get("failing")
     return ([*failing["warning"]] if failing is not None else []) + (
@@ -519,7 +536,7 @@ def _warnings(tables: Mapping[str, pd.DataFrame]) -> list[str]:
 
 def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
     out = [f"# Study `{study}`: summary", ""]
-    warnings = _warnings(tables)
+    warnings = summary_warnings(tables)
     if warnings:
         out += ["## Warnings", "", *[f"- {w}" for w in warnings], ""]
     for key, title in _TITLES.items():
@@ -528,6 +545,28 @@ def summary_markdown(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         df = tables[key]
         out += [f"## {title}", "", _md(df) if len(df) else "_none_", ""]
     return "\n".join(out)
+
+
+def warnings_in_summary(md: str | Path, since: float | None = None) -> list[str]:
+    """The warnings a summary.md lists (``summary_markdown``'s "## Warnings" section), one
+    string each; none when the file is missing or, with ``since`` (a time.time()), was
+    written before it (a summary this run did not write)."""
+    path = Path(md)
+    try:
+        if since is not None and path.stat().st_mtime < since:
+            return []
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    if "## Warnings" not in lines:
+        return []
+    out = []
+    for line in lines[lines.index("## Warnings") + 1:]:
+        if line.startswith("## "):
+            break
+        if line.startswith("- "):
+            out.append(line[2:])
+    return out
 
 
 def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
@@ -539,7 +578,7 @@ def summary_html(study: str, tables: Mapping[str, pd.DataFrame]) -> str:
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{study} summary</title>"
         f"<style>{style}</style></head><body><h1>Study <code>{study}</code>: summary</h1>"
     ]
-    warnings = _warnings(tables)
+    warnings = summary_warnings(tables)
     if warnings:
         out.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{w}</li>" for w in warnings)
                    + "</ul>")

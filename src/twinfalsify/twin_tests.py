@@ -103,6 +103,28 @@ def _results(hyps, samples, n_failed, testing, seed, order_seed) -> pd.DataFrame
     )  # fmt: skip
 
 
+def outcome_sizes(samples: HypothesisSamples) -> pd.DataFrame:
+    """Per hypothesis (rows in the samples' order), the size of a difference the clipped
+    tests cannot show: the twin's unclipped mean and median and its shares strictly below
+    y_lo and above y_up, beside the same of the data's followers (NaN without outcomes)."""
+    out = {}
+    for part, ragged in (("twin", samples.twin), ("data", samples.follow)):
+        gid = ragged.group_ids()
+        h = len(samples.y_lo)
+        v = ragged.values
+        size = np.bincount(gid, minlength=h).astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[f"{part}_mean"] = np.bincount(gid, weights=v, minlength=h) / size
+            out[f"{part}_below"] = np.bincount(gid, weights=v < samples.y_lo[gid],
+                                               minlength=h) / size
+            out[f"{part}_above"] = np.bincount(gid, weights=v > samples.y_up[gid],
+                                               minlength=h) / size
+        out[f"{part}_median"] = np.array(
+            [float(np.median(ragged.group(k))) if size[k] else np.nan for k in range(h)])
+    cols = [f"{p}_{s}" for p in ("twin", "data") for s in ("mean", "median", "below", "above")]
+    return pd.DataFrame(out)[cols]
+
+
 def load_twin_tests(paths: Mapping[str, str | Path]) -> TwinTests:
     """One twin's test inputs from a study's files (keys :data:`STORED_INPUTS`)."""
     missing = set(STORED_INPUTS) - set(paths)

@@ -5,6 +5,10 @@ reference median of the same feature (a twin's hour 1 against the data's, or aga
 X_0) and names the unit that would explain a ratio far from 1: "Glucose: twin median 6.1,
 data 128 mg/dL: mmol/L?". ``against_typical`` compares a median with the range an ICU
 cohort's median typically falls in (a table's glucose median of 7 is not mg/dL).
+``swapped`` names two features of one unit whose medians each sit in the other's typical
+range ("Sodium and Chloride swapped?"), and ``against_reference`` names a median within
+the factor of its reference but outside the feature's typical range when the reference is
+inside it (a twin's sodium of 104 against the data's 140).
 """
 
 from __future__ import annotations
@@ -62,6 +66,56 @@ def against_reference(feature: str, value: float, reference: float,
             return f"{head}: {other}?"
     ratio = value / reference
     return f"{head}: ratio {ratio:.3g}, not a unit this screen knows (scale or offset?)"
+
+
+def outside_typical(feature: str, value: float, reference: float,
+                    who: str = "twin", ref_name: str = "data") -> str:
+    """'' unless ``value`` is outside the feature's typical range while ``reference`` is
+    inside it: then the message (an error smaller than a unit slip, still a wrong value)."""
+    if feature not in TYPICAL or not (math.isfinite(value) and math.isfinite(reference)):
+        return ""
+    lo, hi = TYPICAL[feature]
+    if lo <= value <= hi or not lo <= reference <= hi:
+        return ""
+    unit = FEATURE_BY_NAME[feature].unit
+    return (f"{feature}: {who} median {value:.3g}, {ref_name} {reference:.3g} {unit}, "
+            f"outside the typical {lo:g}-{hi:g}")
+
+
+def swapped(medians: dict[str, float], who: str = "twin") -> list[str]:
+    """Pairs of features with the same unit whose medians each lie outside their own
+    typical range and inside the other's: one message per pair, naming the swap."""
+    out, seen = [], set()
+    for a, va in medians.items():
+        for b, vb in medians.items():
+            if a == b or a not in TYPICAL or b not in TYPICAL or (b, a) in seen:
+                continue
+            if FEATURE_BY_NAME[a].unit != FEATURE_BY_NAME[b].unit:
+                continue
+            (alo, ahi), (blo, bhi) = TYPICAL[a], TYPICAL[b]
+            if (not alo <= va <= ahi and blo <= va <= bhi
+                    and not blo <= vb <= bhi and alo <= vb <= ahi):
+                seen.add((a, b))
+                unit = FEATURE_BY_NAME[a].unit
+                out.append(f"{a} and {b} swapped? ({who} median {a} {va:.3g}, typical "
+                           f"{alo:g}-{ahi:g}; {b} {vb:.3g}, typical {blo:g}-{bhi:g} {unit})")
+    return out
+
+
+def drifts(feature: str, by_hour: list[float], who: str = "twin") -> str:
+    """'' unless the hour-1 median (``by_hour[0]``) is inside the feature's typical range
+    and a later hour's is outside it: then the message naming the first such hour."""
+    if feature not in TYPICAL or not by_hour or not math.isfinite(by_hour[0]):
+        return ""
+    lo, hi = TYPICAL[feature]
+    if not lo <= by_hour[0] <= hi:
+        return ""
+    for h, v in enumerate(by_hour[1:], start=2):
+        if math.isfinite(v) and not lo <= v <= hi:
+            unit = FEATURE_BY_NAME[feature].unit
+            return (f"{feature}: {who} median {by_hour[0]:.3g} at hour 1, {v:.3g} at hour "
+                    f"{h} (typical {lo:g}-{hi:g} {unit}): drifts after hour 1?")
+    return ""
 
 
 def against_typical(feature: str, value: float, who: str = "data") -> str:

@@ -34,11 +34,11 @@ def study_dir(tmp_path_factory) -> tuple[Path, pd.DataFrame, object]:
     res = run_tests(study.hyps, samples, n_failed,
                     make_methods({"hoeffding": {}, "betting": {}}, 0))
     res.to_parquet(r / "twins" / "b" / "results.parquet")
-    return r, res, study
+    return r, res, study, samples
 
 
 def test_a_rejection_is_explained_with_its_numbers(study_dir):
-    r, res, study = study_dir
+    r, res, study, _ = study_dir
     hit = res[res["rejected"]].sort_values("p_value").iloc[0]
     text = explain(r, int(hit["hyp_id"]))
     h = study.hyps.set_index("hyp_id").loc[int(hit["hyp_id"])]
@@ -73,7 +73,7 @@ def test_the_subgroup_reads_as_patients():
 
 
 def test_the_command_line_names_a_missing_hypothesis(study_dir):
-    r, res, _ = study_dir
+    r, res, _, _ = study_dir
     env = {"PYTHONPATH": str(ROOT / "src")}
     ok = subprocess.run([sys.executable, "-m", "twinfalsify.explain", str(r),
                          str(int(res["hyp_id"].iloc[0]))], capture_output=True, text=True,
@@ -124,3 +124,69 @@ def test_the_report_page_explains_each_rejection_with_its_figure(test_study):
     page_o = (r / "twins" / "oracle" / "explained.html").read_text()
     if not res_o["rejected"].any():
         assert "No hypothesis was rejected for this twin." in page_o
+
+
+def test_the_size_of_the_difference_beside_the_data(study_dir):
+    """The clipped mean hides how far off a twin is: explain gives the unclipped mean and
+    median and the shares beyond each bound, equal to a hand computation on the samples."""
+    import numpy as np
+
+    from twinfalsify.twin_tests import outcome_sizes
+
+    r, res, study, samples = study_dir
+    sizes = {"b": outcome_sizes(samples).set_index(study.hyps["hyp_id"].to_numpy())}
+    hit = res[res["rejected"] & (res["outcome"] == "HR")].sort_values("p_value").iloc[0]
+    k = int(np.flatnonzero(study.hyps["hyp_id"].to_numpy() == hit["hyp_id"])[0])
+    twin, data = samples.twin.group(k), samples.follow.group(k)
+    lo, up = samples.y_lo[k], samples.y_up[k]
+    text = explain(r, int(hit["hyp_id"]), sizes=sizes)
+    want = (f"  unclipped: twin mean {np.mean(twin):.4g}, median {np.median(twin):.4g} /min, "
+            f"{np.mean(twin < lo):.0%} of its outputs below y_lo, {np.mean(twin > up):.0%} "
+            f"above y_up (data's followers: mean {np.mean(data):.4g}, median "
+            f"{np.median(data):.4g} /min, {np.mean(data < lo):.0%} below y_lo, "
+            f"{np.mean(data > up):.0%} above y_up)")
+    assert want in text.splitlines(), text
+    # HR + 25 /min: the unclipped mean is above y_up, further than the clipped one shows
+    assert np.mean(twin) > up >= hit["q_twin_hat"]
+    assert np.mean(twin) - np.mean(data) == pytest.approx(25.0, abs=6.0)
+    # without the study's stored runs (this folder has results only) no size line
+    assert "unclipped:" not in explain(r, int(hit["hyp_id"]))
+
+
+def test_each_p_value_with_the_threshold_it_was_held_to(study_dir):
+    """Holm within (method, kind): rank j of m in ascending p is held to alpha / (m - j + 1)."""
+    import numpy as np
+
+    r, res, _, _ = study_dir
+    hit = res[~res["rejected"]].sort_values("p_value").iloc[0]  # the first one Holm stops at
+    fam = res[(res["method"] == hit["method"]) & (res["kind"] == hit["kind"])]
+    m = len(fam)
+    j = int(np.flatnonzero(np.argsort(fam["p_value"].to_numpy(), kind="stable")
+                           == list(fam.index).index(hit.name))[0]) + 1
+    text = explain(r, int(hit["hyp_id"]))
+    assert (f"H_{hit['side']}: p = {hit['p_value']:.3g}, not rejected (Holm threshold "
+            f"{0.05 / (m - j + 1):.3g} at rank {j} of {m} in its family ({hit['method']}, "
+            f"{hit['kind']}), alpha 0.05)") in text, text
+    assert hit["p_value"] > 0.05 / (m - j + 1)
+
+
+@pytest.mark.parametrize("method", ["holm", "bonferroni", "by", "none"])
+def test_thresholds_give_the_corrections_decisions(method):
+    """Each p-value's threshold and rank reproduce ``correct``: Holm rejects rank j when
+    every rank <= j is under its threshold, BY when some rank >= j is, the others alone."""
+    import numpy as np
+
+    from twinfalsify.inference.multiple_testing import correct, thresholds
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        p = np.round(rng.uniform(0, 0.02, size=rng.integers(1, 30)) ** rng.uniform(0.5, 2), 4)
+        level, rank = thresholds(p, 0.05, method)
+        under = (p <= level)[np.argsort(rank)]  # in rank order
+        if method == "holm":
+            want = np.cumprod(under).astype(bool)[rank - 1]
+        elif method == "by":
+            want = np.flip(np.cumsum(np.flip(under)) > 0)[rank - 1]
+        else:
+            want = p <= level
+        assert (want == correct(p, 0.05, method)).all()

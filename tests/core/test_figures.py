@@ -85,6 +85,12 @@ def test_longitudinal_frame_matches_results_and_brute_force(st, tmp_path):
         assert int(last[col]) == int(row[col])
     for col in ("q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat"):
         assert last[col] == pytest.approx(row[col])
+    # the unclipped twin mean and shares beyond the bounds: those of the tested samples
+    k = int(np.flatnonzero(st.hyps["hyp_id"].to_numpy() == hid)[0])
+    raw = st.samples.twin.group(k)
+    assert last["twin_mean"] == pytest.approx(np.mean(raw))
+    assert last["twin_below"] == pytest.approx(np.mean(raw < st.samples.y_lo[k]))
+    assert last["twin_above"] == pytest.approx(np.mean(raw > st.samples.y_up[k]))
     hyp = st.hyps[st.hyps["hyp_id"] == hid].iloc[0]
     x0 = to_array(st.d0, FEATURES)
     a0 = action_codes(st.d0, st.actions)
@@ -357,8 +363,13 @@ def test_longitudinal_title_names_the_intervals_and_each_methods_rejections():
     title = figures.longitudinal_title(
         "fitted", frame, "causal",
         {"hoeffding": [1, 2], "bootstrap": [1, 2, 3, 4], "betting": [1, 2, 3, 4]})
-    head, line = title.split("\n")
-    assert head == "twin fitted: Sodium (causal), a = 0-0-0-0, B = 3-3-3-3-3"
+    head, who, line = title.split("\n")
+    # in words, no codes: action 0 = no drug, B-set 3 = male, 2nd age quartile, above
+    assert head == "twin fitted: Sodium (causal), doses none x 4"
+    assert who == "male, 2nd age quartile, Sodium vs D0 median at hours 0-4: +++++"
+    assert figures.patients_in_brief("HR", [-1, -1, -1]) == "every patient"
+    # IV bin 2 with vasopressor bin 1 (code 2 * 5 + 1), then no drug twice
+    assert figures.doses_in_brief([11, 0, 0]) == "IV Q2 + vaso Q1, none x 2"
     assert line == ("Hoeffding intervals drawn; rejected (holm) at t = 1, 2 by hoeffding; "
                     "t = 1, 2, 3, 4 by bootstrap, betting")
     none = figures.longitudinal_title("oracle", frame, "causal", {"hoeffding": []})

@@ -28,7 +28,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("twins",),
     ("runs", "studyconfig"),
     ("pulse",),
-    ("summary", "figures", "calibration", "explain", "readme_table", "config_reference"),
+    ("summary", "figures", "calibration", "explain", "readme_table", "config_reference",
+     "diff"),
 ]
 LAYER_OF = {top: i for i, tops in enumerate(LAYERS) for top in tops}
 

@@ -48,12 +48,21 @@ Wrong twins that speak the protocol perfectly (the check's behaviour rows must n
     dose2_ignored   the hour-2 dose is ignored (the hour-1 dose reused for hour 2)
     glucose_mmol    Glucose in mmol/L (the good value / 18.016), still labelled mg/dL
     x0_ignored      the same trajectory for every X_0 (a fixed patient replaces X_0)
+    vaso_sign       the vasopressor lowers every output (its dose enters with a minus sign)
+    fluid_tiny      the IV fluid's effect 1000x too small (mL/h read as L/h)
+    vaso_ignored    the vasopressor changes nothing
+    dose_lag        the dose of hour h acts in hour h + 1 (hour 1 sees no drug)
+    batch_leak      inside a simulate_batch, a run starts where the previous run of the
+                    batch left off in part (HR carries 1 % of the previous run's last HR)
+    nacl_swap       Sodium and Chloride swapped in the answer
+    drift           HR and Glucose grow by half their hour-1 value every hour after hour 1
 Whole-twin modes (selector ignored): ``bad_hello`` (hello lacks HR),
 ``bad_units`` (HR in Hz), ``bad_protocol`` (hello says protocol 2), ``no_version`` (hello
 has no version),
 ``no_hello`` (exit at once), ``unflushed`` (never flush stdout: answers sit in the pipe's
 buffer until the twin exits), ``no_bye`` (shutdown is ignored: no bye, no exit until
-stdin closes), ``silent_unknown`` (an unknown op gets no answer).
+stdin closes), ``silent_unknown`` (an unknown op gets no answer). ``--hello-delay S``
+waits S seconds before each hello answer (a twin that takes long to start, but flushes).
 
 ``--batch N`` advertises ``capabilities.batch: N`` and answers
 ``simulate_batch`` messages run by run with the same modes: ``crash`` and
@@ -97,7 +106,11 @@ RUN_MODES = (
     "batch_short", "implausible", "negative",
     "chatty", "nondeterministic", "lookahead", "batch_differs", "stale_restore",
     "early_truncate", "shifted", "dose2_ignored", "glucose_mmol", "x0_ignored",
+    "vaso_sign", "fluid_tiny", "vaso_ignored", "dose_lag", "batch_leak", "nacl_swap", "drift",
 )
+DRIFTING = ("HR", "Glucose")
+# the dose each mode answers as (iv, vaso) -> (iv, vaso)
+DOSE_FAULTS = {"vaso_sign": (1.0, -1.0), "fluid_tiny": (1e-3, 1.0), "vaso_ignored": (1.0, 0.0)}
 DEMOGRAPHICS = ("age", "sex", "weight")  # constant over a stay
 TWIN_MODES = ("bad_hello", "bad_units", "bad_protocol", "no_hello", "no_bye",
               "silent_unknown", "unflushed", "no_version")
@@ -124,6 +137,7 @@ FIXED_X0 = {"age": 65.0, "sex": 0.0, "weight": 80.0, "HR": 90.0, "SysBP": 115.0,
             "paCO2": 40.0, "Arterial_pH": 7.38}
 _PREFIXES: dict[str, Any] = {"seed": None, "done": set()}
 _STALE: dict[int, list[dict]] = {}  # stale_restore: hours cached per seed, doses ignored
+_LEAK: dict[str, float] = {}  # batch_leak: the last HR of the batch's previous run
 
 
 def _log_engine_hours(path: Path, seed: int, doses: Sequence[Sequence[float]]) -> None:
@@ -182,11 +196,26 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
         x0 = dict(FIXED_X0)
     if mode == "dose2_ignored" and len(doses) >= 2:
         doses = [doses[0], doses[0], *doses[2:]]
+    elif mode in DOSE_FAULTS:
+        gain = DOSE_FAULTS[mode]
+        doses = [[float(d[0]) * gain[0], float(d[1]) * gain[1]] for d in doses]
+    elif mode == "dose_lag":
+        doses = [[0.0, 0.0], *doses[:-1]]
     hours = expected(x0, doses[:hours_asked], seed, args.wobble)
     if mode == "shifted":
         hours = [{f: float(x0[f]) for f in FEATURES}, *hours[:-1]]
     elif mode == "glucose_mmol":
         hours = [{**h, "Glucose": h["Glucose"] / 18.016} for h in hours]
+    elif mode == "nacl_swap":
+        hours = [{**h, "Sodium": h["Chloride"], "Chloride": h["Sodium"]} for h in hours]
+    elif mode == "drift":
+        hours = [{f: v * (1 + 0.5 * k) if f in DRIFTING else v for f, v in h.items()}
+                 for k, h in enumerate(hours)]
+    elif mode == "batch_leak" and batch:
+        carry = _LEAK.get("HR")
+        if carry is not None:
+            hours = [{**h, "HR": h["HR"] + 0.01 * carry} for h in hours]
+        _LEAK["HR"] = hours[-1]["HR"]
     cut = hours_asked
     if mode == "lookahead":  # every hour sees the whole request's IV total
         total = sum(float(d[0]) for d in doses[:hours_asked])
@@ -263,6 +292,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--mode", action="append", default=[], help="MODE[:SELECTOR]")
     parser.add_argument("--delay", type=float, default=1.0, help="seconds per slow run")
+    parser.add_argument("--hello-delay", type=float, default=0.0,
+                        help="seconds before the hello answer (a slow start)")
     parser.add_argument("--irreversible-hour", type=int, default=2)
     parser.add_argument("--state-dir", type=Path, help="marker files for crash_once")
     parser.add_argument("--max-hours", type=int, default=None)
@@ -314,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             send({"op": "bye"})
             return 0
         if msg["op"] == "hello":
+            time.sleep(args.hello_delay)
             feats = [{"name": f.name, "unit": f.unit} for f in FEATURE_TABLE]
             if "bad_hello" in twin_modes:
                 feats = [f for f in feats if f["name"] != "HR"]
@@ -334,6 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             send(hello)
             continue
         if msg["op"] == "simulate_batch":
+            _LEAK.clear()  # batch_leak: the leak stays inside one batch
             results, raw, chatty = [], None, False
             for request in msg["requests"]:
                 try:

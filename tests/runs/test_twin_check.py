@@ -20,6 +20,7 @@ from helpers.paths import ROOT
 
 from twinfalsify.runs.check import (
     DEFAULT_TIMEOUT_S,
+    FIX_LAG,
     FIXES,
     HINT_EXIT,
     HINT_UNFLUSHED,
@@ -90,20 +91,41 @@ FAULTS: dict[str, tuple[list[str], dict[str, str]]] = {
                                             "is not flushed"}),
     # wrong twins that speak the protocol perfectly: the behaviour rows name them
     "shifted": (["--mode", "shifted"], {"hour 1": "hour 1 equals X_0 in all 6 ok runs "
-                                        "(every physiological feature): hours shifted"}),
+                                        "(every physiological feature): hours shifted",
+                                        # its answers lag the doses by an hour, too
+                                        "doses": "one hour late? (the action at hour 4 "
+                                                 "changes nothing)"}),
     "glucose_mmol": (["--mode", "glucose_mmol"], {"units": "Glucose: twin median 8.2, X_0 "
                                                   "148 mg/dL: mmol/L?"}),
     "x0_ignored": (["--mode", "x0_ignored"], {"X_0": "the same trajectory from 2 X_0 that "
                                               "differ in 17 features"}),
     "dose2_ignored": (["--mode", "dose2_ignored"], {}),
+    # drug errors: each drug is given alone, so one wrong drug shows
+    "vaso_sign": (["--mode", "vaso_sign"], {}),
+    "fluid_tiny": (["--mode", "fluid_tiny"], {}),
+    "vaso_ignored": (["--mode", "vaso_ignored"], {}),
+    "dose_lag": (["--mode", "dose_lag"], {"doses": "a drug given in hour h first changes an "
+                                          "output at hour h + 1, never in its own hour (6 "
+                                          "runs): doses applied one hour late?"}),
+    "batch_leak": (["--batch", "4", "--mode", "batch_leak"], {"batch": "run 1: hour 1 HR"}),
+    "nacl_swap": (["--mode", "nacl_swap"], {"units": "Sodium and Chloride swapped? (twin "
+                                            "median Sodium 109, typical 120-160; Chloride "
+                                            "142, typical 85-125 mmol/L)"}),
+    "drift": (["--mode", "drift"], {"drift": "HR: twin median 97.4 at hour 1, 146 at hour 2 "
+                                    "(typical 50-140 /min): drifts after hour 1? (and 1 "
+                                    "more)"}),
 }
 # cases that pass with a warning -> {check: fragment of its detail}
 WARNINGS: dict[str, dict[str, str]] = {
     "dose2_ignored": {"doses": "the action at hour 2 changes nothing"},
-    # the answer's last hour is the good hour 3: the hour-4 dose is lost
-    "shifted": {"doses": "the action at hour 4 changes nothing"},
     # the cache ignores doses (and X_0) by design of the fault
     "stale_restore": {"doses": "the actions at hours 1, 2, 3, 4 change nothing"},
+    "vaso_sign": {"effects": "the vasopressor lowers MAP (mean -0.005 mmHg over hours 1-4): "
+                             "a sign error?"},
+    "fluid_tiny": {"effects": "the IV fluid's largest MAP change (1e-05 mmHg) is under 1% of "
+                              "the vasopressor's (0.005 mmHg): one drug's dose in the wrong "
+                              "unit"},
+    "vaso_ignored": {"doses": "the vasopressor changes nothing at any hour: ignored?"},
 }
 
 
@@ -131,7 +153,8 @@ def test_the_check_names_the_fault(case):
     for name, fragment in expect.items():
         assert fragment in failed[name].detail, report(outcomes)
         # a twin that exits mid-run is pointed at its stderr, not at the protocol rules
-        want = {("crash", "protocol"): HINT_EXIT, ("unflushed", "hello"): HINT_UNFLUSHED}.get(
+        want = {("crash", "protocol"): HINT_EXIT, ("unflushed", "hello"): HINT_UNFLUSHED,
+                ("dose_lag", "doses"): FIX_LAG, ("shifted", "doses"): FIX_LAG}.get(
             (case, name), FIXES[name])
         assert failed[name].fix == want
     warned = {o.name: o for o in outcomes if o.warn}
@@ -155,7 +178,8 @@ def test_a_conforming_twin_passes_every_check(caps):
     assert not [o for o in outcomes if o.ok is False or o.warn], report(outcomes)
     passed = {o.name for o in outcomes if o.ok}
     assert {"hello", "protocol", "one answer", "simulates", "ranges", "time", "deterministic",
-            "prefix", "shutdown", "hour 1", "X_0", "doses", "units"} <= passed
+            "prefix", "shutdown", "hour 1", "X_0", "doses", "effects", "units",
+            "drift"} <= passed
     optional = {"--batch": "batch", "--save-restore": "save/restore", "--truncate": "truncation"}
     for flag, name in optional.items():
         assert (name in passed) == (flag in caps), report(outcomes)
@@ -199,8 +223,40 @@ def test_command_line_exit_codes_and_table(tmp_path):
 def test_the_template_twin_of_the_tutorial_passes_every_check():
     outcomes = run_checks([sys.executable, str(ROOT / "docs" / "examples" / "template_twin.py")],
                           ENV, timeout_s=30.0, x0s=X0)
-    assert not [o for o in outcomes if o.ok is False], report(outcomes)
+    assert not [o for o in outcomes if o.ok is False or o.warn], report(outcomes)
     assert {o.name for o in outcomes if o.ok is None} == {"batch", "save/restore", "truncation"}
+
+
+def _effects(outcomes: list[Outcome]) -> dict[tuple[str, str], list[float]]:
+    """The effects table as {(drug, feature): change per hour}."""
+    rows, drug = {}, ""
+    for line in next(o for o in outcomes if o.name == "effects").info[1:]:
+        if line.startswith("("):
+            break
+        head, cells = line[:40], line[40:].split()
+        drug = head[:34].strip().split(" ")[0] if head[:34].strip() else drug
+        rows[(drug, head[34:].strip())] = [float(c) for c in cells]
+    return rows
+
+
+@pytest.mark.slow
+def test_the_effects_table_is_each_drug_alone_against_no_drug():
+    # the good faulty twin: every output moves by 0.001 (0.01 iv + 10 vaso) from the hour
+    # the drug is given (module docstring of faulty_twin.py): 1000 mL/h -> +0.01, 0.5 -> +0.005
+    good = _effects(_check([]))
+    for feature in ("MAP", "SBP", "HR"):
+        assert good[("IV", feature)] == pytest.approx([0.01] * 4, abs=5e-4)
+        assert good[("vasopressor", feature)] == pytest.approx([0.005] * 4, abs=5e-4)
+    signs = _effects(_check(["--mode", "vaso_sign"]))
+    assert signs[("vasopressor", "MAP")] == pytest.approx([-0.005] * 4, abs=5e-4)
+    assert signs[("IV", "MAP")] == pytest.approx([0.01] * 4, abs=5e-4)
+    # the template twin (noisy, realistic sizes): both drugs raise MAP, the fluid by about
+    # 0.02/3 + 2 * 0.01/3 per mL/h, the vasopressor by (25 + 2 * 12) / 3 per ug/kg/min
+    template = _effects(run_checks([sys.executable, str(ROOT / "docs" / "examples" /
+                                                        "template_twin.py")],
+                                   ENV, timeout_s=30.0, x0s=X0))
+    assert template[("IV", "MAP")][0] == pytest.approx(1000 * 0.04 / 3, abs=3.0)
+    assert template[("vasopressor", "MAP")][0] == pytest.approx(0.5 * 49 / 3, abs=3.0)
 
 
 def test_the_default_timeout_is_the_studys():
@@ -223,3 +279,27 @@ def test_units_are_screened_against_the_data_when_given():
     good = run_checks(FAULTY_TWIN, ENV, timeout_s=2.0, x0s=X0, reference=reference,
                       startup_timeout_s=4.0)
     assert next(o for o in good if o.name == "units").ok, report(good)
+
+
+def test_an_unflushed_twin_is_named_within_seconds_and_a_slow_start_is_not(monkeypatch):
+    """With the waits a study uses (hello may take max(timeout_s, the startup timeout)),
+    a twin that never flushes stdout is named after FIRST_ANSWER_S, not after its whole
+    timeout; a twin that flushes but answers hello after the first-answer deadline passes."""
+    import time
+
+    from twinfalsify.runs import check
+
+    start = time.monotonic()
+    outcomes = run_checks([*FAULTY_TWIN, "--mode", "unflushed"], ENV, timeout_s=600.0,
+                          x0s=X0)
+    took = time.monotonic() - start
+    hello = next(o for o in outcomes if o.name == "hello")
+    assert hello.ok is False and hello.fix == HINT_UNFLUSHED, report(outcomes)
+    assert hello.detail.startswith(f"no answer within {check.FIRST_ANSWER_S:g} s: does the "
+                                   "twin flush stdout after each line?"), hello.detail
+    assert took < check.FIRST_ANSWER_S + 25, took  # seconds, not the 600 s timeout
+    monkeypatch.setattr(check, "FIRST_ANSWER_S", 1.0)
+    slow = run_checks([*FAULTY_TWIN, "--hello-delay", "2.5"], ENV, timeout_s=2.0, x0s=X0,
+                      startup_timeout_s=30.0)
+    assert all(o.ok is not False for o in slow), report(slow)
+    assert next(o for o in slow if o.name == "hello").ok is True

@@ -14,7 +14,14 @@ from helpers.paths import ENV, FAKES
 from helpers.workflow import BASE_CONFIG
 from slurm.runs import run
 
-from twinfalsify.runs.hello import cost_line, projected_cost, seconds_per_hour, twin_hello
+from twinfalsify.runs.hello import (
+    PROBE_RUNS,
+    cost_line,
+    projected_cost,
+    seconds_per_hour,
+    seconds_per_hour_range,
+    twin_hello,
+)
 from twinfalsify.schema import ContractError
 
 
@@ -35,13 +42,19 @@ def test_a_bad_hello_is_one_line_naming_twin_field_and_problem(mode, field):
     assert "\n" not in msg
 
 
-def test_a_good_hello_is_kept_with_its_timed_probe_run(tmp_path):
+def test_a_good_hello_is_kept_with_its_timed_probe_runs(tmp_path):
+    import numpy as np
+
     log = tmp_path / "requests.log"
     out = twin_hello("mine", _command("--mode=slow", "--delay=0.3", f"--log-requests={log}"))
     assert out["checked"] == "hello" and out["hello"]["version"] == "1"
-    assert len(log.read_text().splitlines()) == 1  # exactly one run, one hour
+    # PROBE_RUNS runs of one hour each, each timed; seconds is their median
+    assert len(log.read_text().splitlines()) == PROBE_RUNS == out["probe"]["runs"] == 3
     assert out["probe"]["status"] == "ok" and out["probe"]["hours"] == 1
+    each = out["probe"]["seconds_each"]
+    assert len(each) == 3 and out["probe"]["seconds"] == float(np.median(each))
     assert 0.3 <= seconds_per_hour(out) < 5.0  # the twin's own delay, start-up excluded
+    assert seconds_per_hour_range(out) == (min(each), max(each))
 
 
 def test_python_and_builtin_twins_are_checked_in_process():
@@ -66,6 +79,23 @@ def test_projected_cost_is_engine_hours_times_seconds_over_workers():
     failed = {"probe": {"hours": 1, "seconds": 9.0, "status": "timeout", "message": "slow"}}
     cost = projected_cost(plan_hours, 200, failed, 1)
     assert cost["wall_seconds"] is None and "ended timeout: slow" in cost_line("p", cost)
+    assert cost["seconds_per_hour_range"] is None and cost["wall_seconds_range"] is None
+
+
+def test_the_cost_line_says_the_probe_runs_spread():
+    """Three probe runs of 2 h: the median gives the projection, the fastest and slowest
+    its range, in cost.json and in the line."""
+    plan_hours = {"from_scratch": 900, "leaves": 600, "prefix_tree": 240}
+    hello = {"probe": {"hours": 2, "runs": 3, "seconds": 300.0,
+                       "seconds_each": [200.0, 300.0, 800.0], "status": "ok"}, "hello": {}}
+    cost = projected_cost(plan_hours, 200, hello, workers=4)
+    assert cost["seconds_per_hour"] == 150.0 and cost["probe_runs"] == 3
+    assert cost["seconds_per_hour_range"] == [100.0, 400.0]
+    # 600 engine-hours x 100 .. 400 s / 4 workers
+    assert cost["wall_seconds_range"] == [15_000.0, 60_000.0]
+    line = cost_line("p", cost)
+    assert line.endswith("; at 150 s per simulated hour (median of 3 probe runs, 100-400 s) "
+                         "on 4 worker(s): about 6h15m00s wall (4h10m00s to 16h40m00s)"), line
 
 
 @pytest.mark.slow
@@ -91,7 +121,7 @@ def test_bad_hello_stops_the_study_before_any_shard_and_dry_runs_start_no_twin(t
     target = f"results/{cfg['study']}/twins/good/hello.json"
     assert run(tmp_path, config, "--cores", "1", target, timeout=600).returncode == 0
     asked = log.read_text().splitlines()
-    assert len(asked) == 1  # the probe run, once
+    assert len(asked) == PROBE_RUNS  # the probe runs, once
     assert run(tmp_path, config, "--cores", "1", target, timeout=600).returncode == 0
     assert log.read_text().splitlines() == asked
 

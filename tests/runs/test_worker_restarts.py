@@ -17,7 +17,7 @@ from twinfalsify.runs.plan import restart_warning, worker_summary
 from twinfalsify.runs.protocol_twin import ProtocolTwin
 from twinfalsify.runs.runner import simulate_via_protocol
 from twinfalsify.schema import FEATURES
-from twinfalsify.summary import _warnings, study_summary, summary_markdown
+from twinfalsify.summary import study_summary, summary_markdown, summary_warnings
 
 
 def _runs(n: int, t: int = 2):
@@ -95,7 +95,7 @@ def test_study_summary_shows_restarts_per_shard_and_a_warning():
     w = tables["workers"]
     assert list(w["twin"]) == ["shaky", "shaky"] and list(w["shard"]) == [0, 1]
     assert list(w["restarts"]) == [0, 4]
-    warnings = _warnings(tables)
+    warnings = summary_warnings(tables)
     assert len(warnings) == 1 and "twin shaky: its shards restarted" in warnings[0]
     assert "Twin worker restarts per shard" in summary_markdown("s", tables)
 

@@ -245,6 +245,26 @@ def test_workflow_stops_at_a_broken_table_in_one_line_before_any_other_rule(tmp_
     assert outputs == [], outputs
 
 
+def test_workflow_stops_at_a_table_in_another_unit_before_any_twin_runs(tmp_path, small):
+    table = small.copy()
+    table["Glucose"] = table["Glucose"] / 18.016  # mmol/L, inside the contract's range
+    write_table(table, tmp_path / "mmol.csv")
+    cfg = _config({"kind": "table", "table": {"path": "mmol.csv"}})
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(cfg))
+    run = run_snakemake(tmp_path, tmp_path / "study.yaml", "--cores", "1")
+    assert run.returncode != 0
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith("ERROR: mmol.csv: the rows follow the contract, but a feature looks "
+                           "like another unit than the contract's: Glucose: data median "), last
+    assert last.endswith(", typical 60-350 mg/dL: mmol/L?; convert it "
+                         "(docs/reference/table.md)"), last
+    assert "Traceback" not in run.stderr
+    outputs = [p for p in (tmp_path / "results" / "test").rglob("*")
+               if p.is_file() and not {"logs", "benchmarks"} & set(p.parts)
+               and p.name != "hello.json"]
+    assert outputs == [], outputs
+
+
 def test_the_table_check_screens_units(tmp_path):
     from twinfalsify.sources.synthetic import generate
     from twinfalsify.sources.table import main, to_table, unit_suspects, write_table

@@ -8,6 +8,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import yaml
 from helpers.workflow import BASE_CONFIG
@@ -62,3 +64,24 @@ def test_figure_hyp_id_that_does_not_exist_stops_the_study_at_the_design_rule(tm
                  if ln.startswith("invalid config: ")), "")
     assert done.returncode != 0
     assert line.startswith("invalid config: config key figures.longitudinal.hyp_id: 999999")
+
+
+def test_a_local_run_does_not_speak_of_slurm(test_study, tmp_path):
+    """A command twin with the default timeout_s asks days per shard, which is worth a
+    warning on Slurm (a queue may refuse it) and is no concern on a local run: a local dry
+    run plans its shards (runtime in days) without a word about Slurm."""
+    import yaml
+    from helpers.paths import ROOT
+    from helpers.workflow import copy_study, run_snakemake
+
+    work = copy_study(test_study[0], tmp_path / "study")
+    cfg = yaml.safe_load((work / "test.yaml").read_text())
+    cfg["twins"]["mine"] = {"kind": "command",
+                            "command": f"python {ROOT / 'docs/examples/template_twin.py'}"}
+    (work / "test.yaml").write_text(yaml.safe_dump(cfg))
+    done = run_snakemake(work, work / "test.yaml", "-n")
+    out = done.stdout + done.stderr
+    assert done.returncode == 0, out[-3000:]
+    days = [int(m) for m in re.findall(r"runtime=(\d+)", out) if int(m) > 24 * 60]
+    assert days, out[-3000:]  # the shards were planned, at more than a day each
+    assert "Slurm" not in out

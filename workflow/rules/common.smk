@@ -270,7 +270,11 @@ def shard_runtime(wildcards, input, threads):
         float(spec.get("timeout_s", 600.0)) if served else None,
         threads,
     )
-    if minutes > RUNTIME_WARN_MINUTES and wildcards.twin not in _RUNTIME_WARNED:
+    if (
+        on_slurm()
+        and minutes > RUNTIME_WARN_MINUTES
+        and wildcards.twin not in _RUNTIME_WARNED
+    ):
         # said once per twin, when the jobs are planned: a queue may refuse such a job, or
         # hold it for days
         _RUNTIME_WARNED.add(wildcards.twin)
@@ -281,6 +285,13 @@ def shard_runtime(wildcards, input, threads):
             file=sys.stderr,
         )
     return minutes
+
+
+def on_slurm():
+    """True when the jobs go to Slurm (``--executor slurm``, the slurm profile): only
+    there is a shard's time limit worth a word."""
+    plugin = workflow.executor_plugin
+    return plugin is not None and plugin.name == "slurm"
 
 
 # a shard's Slurm time limit above a day is worth a warning

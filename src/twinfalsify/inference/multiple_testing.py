@@ -75,3 +75,40 @@ def _groups(labels: np.ndarray) -> list[np.ndarray]:
     _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
     order = np.argsort(first, kind="stable")
     return [np.flatnonzero(inverse == g) for g in order]
+
+
+def thresholds(p_values: np.ndarray, alpha: float = 0.05,
+               method: str = "holm") -> tuple[np.ndarray, np.ndarray]:
+    """(threshold, rank) of each p-value in one family: the level its own step compares it
+    with (Holm: alpha / (m - rank + 1), a step-down that also needs every smaller p-value
+    rejected; Bonferroni: alpha / m; BY: rank alpha / (m c_m), a step-up; none: alpha) and
+    its 1-based rank among the sorted p-values (ties in the order given)."""
+    if method not in CORRECTIONS:
+        raise ValueError(f"unknown correction {method!r}; choose one of {sorted(CORRECTIONS)}")
+    p = np.asarray(p_values, float)
+    m = p.size
+    rank = np.empty(m, dtype=np.int64)
+    rank[np.argsort(p, kind="stable")] = np.arange(1, m + 1)
+    if method == "none":
+        level = np.full(m, float(alpha))
+    elif method == "bonferroni":
+        level = np.full(m, alpha / max(m, 1))
+    elif method == "holm":
+        level = alpha / (m - rank + 1.0)
+    else:
+        level = rank / float(m) / np.sum(1.0 / np.arange(1, m + 1)) * alpha
+    return level, rank
+
+
+def thresholds_within(p_values: np.ndarray, families: np.ndarray, alpha: float = 0.05,
+                      method: str = "holm") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(threshold, rank, family size) of each p-value within its family (as ``correct_within``
+    groups them)."""
+    p = np.asarray(p_values, float)
+    level = np.zeros(p.shape)
+    rank = np.zeros(p.shape, dtype=np.int64)
+    size = np.zeros(p.shape, dtype=np.int64)
+    for idx in _groups(np.asarray(families)):
+        level[idx], rank[idx] = thresholds(p[idx], alpha, method)
+        size[idx] = idx.size
+    return level, rank, size

@@ -34,18 +34,30 @@ given (a twin can speak the protocol perfectly and still be wrong in these ways)
 
 hour 1           hour 1 is not a copy of X_0 (hours shifted by one)
 X_0              two different X_0 (same seed, same doses) give different trajectories
-doses            a dose changed at hour h changes some output at an hour >= h; a warning
-                 ("the action at hour 2 changes nothing") when it does not
+doses            each drug alone (IV fluid, then the vasopressor, the other at 0) given at
+                 hour h changes some output at an hour >= h; a warning when it does not
+                 ("the action at hour 2 changes nothing", "the vasopressor changes nothing
+                 at any hour: ignored?"); fails when no drug ever changes its own hour
+                 (doses applied one hour late)
+effects          what each drug alone in hour 1 does to MAP, SBP and HR over the hours
+                 (a table, mean of 3 seeds, beside what clinicians expect); a warning when
+                 a drug lowers MAP or moves it by under 1 % of the other drug's change
 units            each feature's hour-1 median against the data's (``--table``, or the
                  source of ``--config``) or else against X_0's: a ratio far from 1 is named
                  with the unit that explains it ("Glucose: twin median 6.1, data 128
-                 mg/dL: mmol/L?")
+                 mg/dL: mmol/L?"); two features of one unit each in the other's typical
+                 range ("Sodium and Chloride swapped?"), and a median outside the feature's
+                 typical range where the reference is inside it
+drift            each feature's median over the ok runs at hours 2.. inside its typical
+                 range when it is at hour 1 ("HR: twin median 91 at hour 1, 228 at hour 4
+                 (typical 50-140 /min): drifts after hour 1?")
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -56,7 +68,13 @@ from typing import Any
 
 import numpy as np
 
-from twinfalsify.runs.protocol import ProtocolError, check_hello, check_result, check_results
+from twinfalsify.runs.protocol import (
+    ProtocolError,
+    check_hello,
+    check_result,
+    check_results,
+    encode,
+)
 from twinfalsify.runs.worker import (
     SHUTDOWN_GRACE_S,
     STARTUP_TIMEOUT_S,
@@ -66,7 +84,7 @@ from twinfalsify.runs.worker import (
     resolve_command,
 )
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, STAY_ID, T_MAX, TIME, ContractError
-from twinfalsify.unitscreen import against_reference
+from twinfalsify.unitscreen import against_reference, drifts, outside_typical, swapped
 
 UNITS = {f.name: f.unit for f in FEATURE_TABLE}
 # per run, when the spec gives no timeout_s: the study's own default, so that a twin the
@@ -86,6 +104,13 @@ DOSES = (
     ((100.0, 0.1), (100.0, 0.2), (50.0, 0.3), (50.0, 0.3)),
 )
 BRANCH = ((100.0, 0.1), (100.0, 0.2), (0.0, 0.0), (500.0, 0.0))  # shares 2 hours with DOSES[2]
+# The dose components, each given alone (the other at 0) in one hour for the doses and
+# effects checks: (name, amount, unit); a 1 L bolus over an hour, a high vasopressor dose.
+COMPONENTS = (("IV fluid", 1000.0, "mL/h"), ("vasopressor", 0.5, "ug/kg/min"))
+SEEDS = (4343, 4344, 4345)  # the effects table averages these (a noisy twin's sign holds)
+EFFECT_FEATURES = ("MeanBP", "SysBP", "HR")
+SHORT = {"MeanBP": "MAP", "SysBP": "SBP", "HR": "HR"}
+SIZE_RATIO = 0.01  # one drug's largest MAP change under this share of the other's is named
 
 
 @dataclass
@@ -97,6 +122,7 @@ class Outcome:
     detail: str
     fix: str = ""
     warn: bool = False  # passed, but with a warning the author should read
+    info: list[str] = field(default_factory=list)  # lines printed under the row (a table)
 
 
 FIXES = {
@@ -104,7 +130,7 @@ FIXES = {
               "paths relative to where the study runs; 'python' means the study's Python)",
     "hello": "answer the first line {\"op\": \"hello\", ...} with {\"op\": \"hello\", \"ok\": "
              "true, \"name\", \"version\", \"protocol\": 1, \"features\": [{\"name\", \"unit\"} "
-             "for all 18 contract features, units exactly as in docs/twin-protocol.md], "
+             "for all 18 contract features, units exactly as in docs/reference/twin-protocol.md], "
              "\"capabilities\": {...}}",
     "one answer": "write exactly one JSON line per request and flush; send logs to stderr "
                   "(print(..., file=sys.stderr)); answer an unknown op with {\"op\": "
@@ -137,9 +163,25 @@ FIXES = {
            "patient)",
     "doses": "apply the dose of hour h (doses[h-1]) during hour h; a twin that "
              "truly ignores a drug can keep the warning",
-    "units": "convert every output to the contract's unit (docs/twin-protocol.md, "
+    "effects": "check the sign and unit of each drug's effect (IV fluid in mL/h, the "
+               "vasopressor as norepinephrine-equivalent ug/kg/min); a twin whose drug truly "
+               "acts this way can keep the warning",
+    "drift": "look for a state that grows hour by hour: a step in minutes taken as hours, a "
+             "rate applied per call, a unit converted again at every hour",
+    "units": "convert every output to the contract's unit (docs/reference/twin-protocol.md, "
              "'Features'): the unit named after '?' is the one the values look like",
 }
+FIX_LAG = ("apply the dose of hour h (doses[h-1]) during hour h: the answer's hour h is the "
+           "state at the END of hour h, after that hour's dose (not the state before it)")
+# how long the check waits for a twin's first answer before it tells a slow start from an
+# unflushed stdout (``Check._first_hello``)
+FIRST_ANSWER_S = 5.0
+
+
+class _Unflushed(Exception):
+    """The twin's answers sit in an unflushed stdout buffer."""
+
+
 HINT_UNFLUSHED = ("flush stdout after every answer: print(..., flush=True) or "
                   "sys.stdout.flush() (or run python -u); a pipe holds unflushed lines")
 HINT_SLOW_START = ("if the twin needs long to start (loading a model, an engine), raise "
@@ -206,10 +248,10 @@ class Checker:
 
     # -- plumbing ----------------------------------------------------------------------
     def add(self, name: str, ok: bool | None, detail: str, fix: str = "",
-            warn: bool = False) -> None:
+            warn: bool = False, info: list[str] | None = None) -> None:
         if ok is False or warn:
             fix = fix or FIXES.get(name, "")
-        self.outcomes.append(Outcome(name, ok, detail, fix, warn))
+        self.outcomes.append(Outcome(name, ok, detail, fix, warn, list(info or [])))
 
     def start(self) -> Worker:
         worker = Worker(self.command, self.env)
@@ -282,7 +324,10 @@ class Checker:
             self.add("starts", False, str(exc))
             return None
         try:
-            msg = worker.ask({"op": "hello", "protocol": 1}, self.hello_wait)
+            msg = self._first_hello(worker)
+        except _Unflushed as exc:
+            self.add("hello", False, str(exc), HINT_UNFLUSHED)
+            return None
         except WorkerTimeout:
             self.add("hello", False, *self._why_no_hello(worker))
             return None
@@ -307,6 +352,52 @@ class Checker:
             self.add("hello", False, f"max_hours {max_hours} < T = {T_MAX}: a study asks for "
                      f"up to {T_MAX} hours (or set design.horizon <= {max_hours})")
         return worker
+
+    def _first_hello(self, worker: Worker) -> dict[str, Any]:
+        """The hello answer, within ``hello_wait``; a twin silent for FIRST_ANSWER_S is
+        told apart from a slow starter at once: a second copy is sent hello with its stdin
+        closed, which makes a buffering twin exit and flush. When that copy answers while
+        the first, started earlier, is still silent, the first holds its answer in an
+        unflushed buffer (``_Unflushed``)."""
+        hello = {"op": "hello", "protocol": 1}
+        first = min(FIRST_ANSWER_S, self.hello_wait)
+        try:
+            return worker.ask(hello, first)
+        except WorkerTimeout:
+            if self.hello_wait <= first:
+                raise
+        probe = self.start()
+        try:
+            assert probe.proc.stdin is not None
+            os.write(probe.proc.stdin.fileno(), encode(hello).encode("utf-8"))
+            probe.proc.stdin.close()
+        except OSError:
+            pass
+        answered: list[bool] = []
+
+        def probe_answered() -> bool:
+            while not answered and not probe.lines.empty():
+                line = probe.lines.get_nowait()
+                if line is None:
+                    break
+                if '"hello"' in line:
+                    answered.append(True)
+            return bool(answered)
+
+        try:
+            return worker.answer(self.hello_wait - first, until=probe_answered)
+        except WorkerTimeout:
+            if not answered:
+                raise
+        try:  # the first copy may have answered in the same instant
+            return worker.answer(1.0)
+        except WorkerTimeout:
+            raise _Unflushed(f"no answer within {first:g} s: does the twin flush stdout "
+                             "after each line? (a second copy answered hello only when its "
+                             "stdin was closed, the first, started earlier, is still "
+                             "silent)") from None
+        finally:
+            probe.kill()
 
     @property
     def hello_wait(self) -> float:
@@ -590,55 +681,172 @@ class Checker:
                  "seed and doses: X_0 is ignored" if same else
                  "2 different X_0 (same seed and doses) give different trajectories")
 
+    def _effect_run(self, x0: dict[str, float], hours: int, seed: int,
+                    component: int | None = None, hour: int = 1) -> _Run:
+        """A run from no drug at all; ``component`` (0 IV fluid, 1 vasopressor) given alone
+        at ``hour``, in the amount of COMPONENTS."""
+        doses = [[0.0, 0.0] for _ in range(hours)]
+        if component is not None:
+            doses[hour - 1][component] = COMPONENTS[component][1]
+        return self.simulate(self.main(), self.request(x0, doses, seed))
+
     def check_doses(self, x0: dict[str, float], hours: int) -> None:
-        base_doses = [list(d) for d in DOSES[2][:hours]]
-        worker = self.main()
-        base = self.simulate(worker, self.request(x0, base_doses, 4343))
-        if base.status != "ok":
-            self.add("doses", None, f"the base run answered {base.problem or base.status!r}")
+        """Each dose component alone at each hour: does it change an output of that hour or
+        later (a warning when not), and does any change show up in its own hour (a dose
+        applied one hour late fails)?  Then what each drug does to MAP, SBP and HR."""
+        base = self._effect_run(x0, hours, SEEDS[0])
+        if base.status != "ok" or base.values is None or len(base.values) < hours:
+            self.add("doses", None, f"the run without drugs answered "
+                     f"{base.problem or base.status!r}")
+            self.add("effects", None, "no run without drugs to compare with")
             return
-        silent, compared = [], 0
-        for h in range(1, hours + 1):
-            changed = [list(d) for d in base_doses]
-            changed[h - 1] = [changed[h - 1][0] + 400.0, changed[h - 1][1] + 0.4]
-            run = self.simulate(self.main(), self.request(x0, changed, 4343))
-            if run.status != "ok" or len(run.values) < h:
-                continue
-            compared += 1
-            later = slice(h - 1, None)
-            if np.array_equal(run.values[later], base.values[later], equal_nan=True):
-                silent.append(h)
+        silent: dict[int, list[int]] = {0: [], 1: []}
+        own_hour, later_only, compared = 0, 0, 0
+        for c in (0, 1):
+            for h in range(1, hours + 1):
+                run = self._effect_run(x0, hours, SEEDS[0], c, h)
+                if run.status != "ok" or run.values is None or len(run.values) < hours:
+                    continue
+                compared += 1
+                a, b = run.values[:hours], base.values[:hours]
+                moved = ~((a == b) | (np.isnan(a) & np.isnan(b)))
+                changed = np.flatnonzero(moved[h - 1:].any(axis=1))
+                if not len(changed):
+                    silent[c].append(h)
+                elif changed[0] == 0:
+                    own_hour += 1
+                else:
+                    later_only += 1
         if not compared:
-            self.add("doses", None, "no ok run with a changed dose to compare")
-        elif silent:
-            what = (f"the action at hour {silent[0]} changes nothing" if len(silent) == 1 else
-                    f"the actions at hours {', '.join(map(str, silent))} change nothing")
-            self.add("doses", True, f"{what} (IV fluid +400 mL/h and vasopressor +0.4 "
-                     "ug/kg/min at that hour; every output of that hour and later equal)",
-                     warn=True)
+            self.add("doses", None, "no ok run with a drug given to compare")
         else:
-            self.add("doses", True, f"a dose changed at hour h changes an output at an hour "
-                     f">= h (h = 1..{hours})")
+            self._doses_row(silent, own_hour, later_only, hours)
+        self._effects_row(x0, hours, base)
+
+    def _doses_row(self, silent: dict[int, list[int]], own_hour: int, later_only: int,
+                   hours: int) -> None:
+        both = sorted(set(silent[0]) & set(silent[1]))
+        notes = []
+        if both:
+            notes.append(f"the action at hour {both[0]} changes nothing" if len(both) == 1
+                         else f"the actions at hours {', '.join(map(str, both))} change "
+                         "nothing")
+        for c in (0, 1):
+            alone = [h for h in silent[c] if h not in both]
+            name = COMPONENTS[c][0]
+            if len(silent[c]) == hours and not both == list(range(1, hours + 1)):
+                notes.append(f"the {name} changes nothing at any hour: ignored?")
+            elif alone:
+                notes.append(f"the {name} at hour{'s' if len(alone) > 1 else ''} "
+                             f"{', '.join(map(str, alone))} changes nothing")
+        amounts = " or ".join(f"{n} {a:g} {u}" for n, a, u in COMPONENTS)
+        if later_only and not own_hour:
+            self.add("doses", False, "a drug given in hour h first changes an output at "
+                     f"hour h + 1, never in its own hour ({later_only} runs): doses applied "
+                     "one hour late?"
+                     + (f" ({'; '.join(notes)})" if notes else ""),
+                     fix=FIX_LAG)
+        elif notes:
+            self.add("doses", True, "; ".join(notes) + f" ({amounts} given alone at that "
+                     "hour; every output of that hour and later equal)", warn=True)
+        else:
+            self.add("doses", True, f"each drug alone at hour h changes an output at hour h "
+                     f"or later (h = 1..{hours}; {amounts})")
+
+    def _effects_row(self, x0: dict[str, float], hours: int, base: _Run) -> None:
+        """Each drug alone in hour 1 against no drug, averaged over SEEDS: the table of its
+        effect on EFFECT_FEATURES, and a warning for a wrong sign or a size far from the
+        other drug's."""
+        cols = [FEATURES.index(f) for f in EFFECT_FEATURES]
+        deltas: dict[int, list[np.ndarray]] = {0: [], 1: []}
+        for k, seed in enumerate(SEEDS):
+            b = base if k == 0 else self._effect_run(x0, hours, seed)
+            if b.status != "ok" or b.values is None or len(b.values) < hours:
+                continue
+            for c in (0, 1):
+                run = self._effect_run(x0, hours, seed, c, 1)
+                if run.status == "ok" and run.values is not None and len(run.values) >= hours:
+                    deltas[c].append(run.values[:hours, cols] - b.values[:hours, cols])
+        if not deltas[0] or not deltas[1]:
+            self.add("effects", None, "no ok pair of runs with and without a drug")
+            return
+        mean = {c: np.mean(deltas[c], axis=0) for c in (0, 1)}  # (hours, len(cols))
+        table = [f"{'':<40}" + "".join(f"{f'hour {h}':>10}" for h in range(1, hours + 1))]
+        for c in (0, 1):
+            name, amount, unit = COMPONENTS[c]
+            label = f"{name} {amount:g} {unit}, hour 1"
+            for j, feat in enumerate(EFFECT_FEATURES):
+                table.append(f"{label if j == 0 else '':<34}{SHORT[feat]:<6}" + "".join(
+                    f"{v:>+10.3g}" for v in mean[c][:, j]))
+        table += [f"(each drug alone in hour 1, the change against no drug, mean of "
+                  f"{len(deltas[0])} seeds; clinicians",
+                  " expect a vasopressor to raise MAP and SBP within the hour, a fluid bolus to "
+                  "raise MAP",
+                  " less and later; HR may go either way)"]
+        notes = []
+        m = EFFECT_FEATURES.index("MeanBP")
+        for c in (0, 1):
+            name = COMPONENTS[c][0]
+            signs = [np.mean(d[:, m]) for d in deltas[c]]
+            if all(s < 0 for s in signs):
+                notes.append(f"the {name} lowers MAP (mean {np.mean(signs):+.3g} mmHg over "
+                             f"hours 1-{hours}): a sign error?")
+        size = {c: float(np.max(np.abs(mean[c][:, m]))) for c in (0, 1)}
+        if min(size.values()) > 0 and min(size.values()) < SIZE_RATIO * max(size.values()):
+            small = min(size, key=size.get)
+            other = 1 - small
+            notes.append(f"the {COMPONENTS[small][0]}'s largest MAP change "
+                         f"({size[small]:.3g} mmHg) is under {SIZE_RATIO:.0%} of the "
+                         f"{COMPONENTS[other][0]}'s ({size[other]:.3g} mmHg): one drug's "
+                         "dose in the wrong unit (mL vs L, ug vs mg)?")
+        detail = "; ".join(notes) if notes else (
+            "each drug's effect on MAP has the expected sign (the table below)")
+        self.add("effects", True, detail, warn=bool(notes), info=table)
 
     def check_units(self, runs: Sequence[_Run], reference: dict[str, float] | None,
                     ref_name: str) -> None:
         ok = self._ok_runs(runs)
         if not ok:
             self.add("units", None, "no ok run to look at")
+            self.add("drift", None, "no ok run to look at")
             return
         first = np.array([r.values[0] for r in ok])
         twin = dict(zip(FEATURES, np.nanmedian(first, axis=0), strict=True))
         if reference is None:
             reference = {f: float(np.median([r.request["x0"][f] for r in ok]))
                          for f in FEATURES}
-        found = [m for f in FEATURES if f != "sex" and f in reference
-                 for m in [against_reference(f, float(twin[f]), reference[f],
-                                             ref_name=ref_name)] if m]
+        screened = [f for f in FEATURES if f != "sex" and f in reference]
+        found = swapped({f: float(twin[f]) for f in screened})
+        named = {f for m in found for f in screened if m.startswith(f) or f" and {f} " in m}
+        for f in screened:
+            if f in named:
+                continue
+            m = (against_reference(f, float(twin[f]), reference[f], ref_name=ref_name)
+                 or outside_typical(f, float(twin[f]), reference[f], ref_name=ref_name))
+            if m:
+                found.append(m)
         self.add("units", not found, found[0] + (f" (and {len(found) - 1} more: "
                  + "; ".join(found[1:]) + ")" if len(found) > 1 else "") if found else
                  f"every feature's hour-1 median within a factor 2 of "
-                 f"{'the data' if ref_name == 'data' else ref_name}'s "
-                 f"({len(ok)} ok runs)")
+                 f"{'the data' if ref_name == 'data' else ref_name}'s and inside its typical "
+                 f"range where that is ({len(ok)} ok runs)")
+        # later hours: a median inside the typical range at hour 1 and outside it later
+        # (of the runs inside the contract's ranges: the others are failed runs in a study)
+        lo = np.array([f.lo for f in FEATURE_TABLE])
+        hi = np.array([f.hi for f in FEATURE_TABLE])
+        longest = max(len(r.values) for r in ok)
+        full = [r.values for r in ok if len(r.values) == longest
+                and not ((r.values < lo) | (r.values > hi)).any()]
+        if not full:
+            self.add("drift", None, "no ok run inside the contract's ranges to look at")
+            return
+        by_hour = np.nanmedian(np.array(full), axis=0)  # (hours, F)
+        drift = [m for k, f in enumerate(FEATURES) if f not in named
+                 for m in [drifts(f, [float(v) for v in by_hour[:, k]])] if m]
+        self.add("drift", not drift, drift[0] + (f" (and {len(drift) - 1} more)"
+                 if len(drift) > 1 else "") if drift else
+                 f"every feature's median inside its typical range at hours 2-{len(by_hour)} "
+                 "where it is at hour 1")
 
     def check_shutdown(self) -> None:
         worker = self.main()
@@ -715,6 +923,7 @@ def report(outcomes: list[Outcome]) -> str:
         mark = "WARN" if o.warn and o.ok is not False else \
             {True: "pass", False: "FAIL", None: "skip"}[o.ok]
         lines.append(f"{o.name:<{width}}  {mark}  {o.detail}")
+        lines.extend(f"{'':<{width}}        {line}" for line in o.info)
         if o.fix:
             lines.append(f"{'':<{width}}        fix: {o.fix}")
     failed = [o.name for o in outcomes if o.ok is False]
@@ -825,6 +1034,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from twinfalsify.io import load_yaml_strict
 
         data = data_of_config(load_yaml_strict(args.config) or {})
+    if data is not None:
+        from twinfalsify.sources.table import unit_suspects
+
+        for message in unit_suspects(data):
+            print(f"note: the data look atypical, so the units row compares the twin with "
+                  f"them as they are: {message}", flush=True)
     x0s = x0_from_table(args.x0) if args.x0 else (_x0_of(data) if data is not None else None)
     reference = data_reference(data) if data is not None else None
     print(f"checking twin {shlex.join(command)} (timeout_s {timeout:g}; units against "

@@ -3,9 +3,10 @@
 A served or command twin is started once, with no data: its hello must name protocol 1,
 a name and a version, every feature of the trajectory contract in its unit
 (``runs.protocol.check_hello``); a bad hello is a ContractError naming the twin, the field
-and the problem. The worker then simulates one X_0 for ``PROBE_HOURS`` hours, timed: a first
-measure of the twin's seconds per simulated hour, from which the rule ``twin_cost``
-projects a study's wall time (``projected_cost``). A ``kind: python`` twin is built in
+and the problem. The worker then simulates one X_0 ``PROBE_RUNS`` times for ``PROBE_HOURS``
+hours, each run timed: a first measure of the twin's seconds per simulated hour (the
+median run) and of its spread (the fastest and the slowest run), from which the rule
+``twin_cost`` projects a study's wall time (``projected_cost``). A ``kind: python`` twin is built in
 this process (its factory is called, the object it returns checked) and timed the same
 way; builtin twins are the library's own and pass as they are.
 """
@@ -18,10 +19,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from twinfalsify.runs.protocol_twin import probe_record
 from twinfalsify.runs.registry import BUILTIN_KINDS, make_twin
 from twinfalsify.schema import FEATURES
 
-PROBE_HOURS = 1  # hours of the one timed run: a slow engine (Pulse) pays ~minutes per hour
+PROBE_HOURS = 1  # hours of each timed run: a slow engine (Pulse) pays ~minutes per hour
+PROBE_RUNS = 3  # timed runs: one run's time can be far from a typical run's
 
 
 def probe_x0() -> dict[str, float]:
@@ -36,9 +39,10 @@ def probe_x0() -> dict[str, float]:
     return {f: float(x0.at[med, f]) for f in FEATURES}
 
 
-def twin_hello(name: str, spec: dict[str, Any], hours: int = PROBE_HOURS) -> dict[str, Any]:
+def twin_hello(name: str, spec: dict[str, Any], hours: int = PROBE_HOURS,
+               runs: int = PROBE_RUNS) -> dict[str, Any]:
     """What ``hello.json`` holds for the twin ``name``: its kind, how it was checked, its
-    hello answer (served and command twins) and ``probe`` (one timed run, or None)."""
+    hello answer (served and command twins) and ``probe`` (``runs`` timed runs, or None)."""
     kind = spec.get("kind")
     out: dict[str, Any] = {"twin": name, "kind": kind}
     if kind in BUILTIN_KINDS:  # the library's own code (served or not): nothing to ask
@@ -47,24 +51,39 @@ def twin_hello(name: str, spec: dict[str, Any], hours: int = PROBE_HOURS) -> dic
 
     twin = make_twin(name, spec)  # kind python in-process: its factory runs and is checked
     if isinstance(twin, ProtocolTwin):
-        hello = twin.hello(probe=probe_x0(), hours=hours)
+        hello = twin.hello(probe=probe_x0(), hours=hours, runs=runs)
         return {**out, "checked": "hello", "probe": hello.pop("probe"), "hello": hello}
     x0 = pd.DataFrame([probe_x0()])[list(FEATURES)]
-    start = time.monotonic()
-    res = twin.simulate(x0, np.zeros((1, hours, 2)), np.zeros(1, dtype=np.uint64))
-    seconds = time.monotonic() - start
-    status = str(np.asarray(res.status)[0])
+    each, status, message = [], "ok", ""
+    for k in range(max(int(runs), 1)):
+        start = time.monotonic()
+        res = twin.simulate(x0, np.zeros((1, hours, 2)), np.full(1, k, dtype=np.uint64))
+        each.append(time.monotonic() - start)
+        status = str(np.asarray(res.status)[0])
+        if status != "ok":
+            message = str(np.asarray(res.message)[0])
+            break
     return {**out, "checked": "in-process", "class": type(twin).__name__,
-            "probe": {"hours": hours, "seconds": seconds, "status": status,
-                      "message": "" if status == "ok" else str(np.asarray(res.message)[0])}}
+            "probe": probe_record(hours, each, status, message)}
 
 
 def seconds_per_hour(hello: dict[str, Any]) -> float | None:
-    """Seconds per simulated hour measured by the probe run; None when it did not run ok."""
+    """Seconds per simulated hour measured by the probe (its median run); None when it did
+    not run ok."""
     probe = hello.get("probe") or {}
     if probe.get("status") != "ok" or not probe.get("hours"):
         return None
     return float(probe["seconds"]) / int(probe["hours"])
+
+
+def seconds_per_hour_range(hello: dict[str, Any]) -> tuple[float, float] | None:
+    """(fastest, slowest) seconds per simulated hour over the probe's runs; None when the
+    probe did not run ok or timed fewer than two runs."""
+    probe = hello.get("probe") or {}
+    each = probe.get("seconds_each") or []
+    if seconds_per_hour(hello) is None or len(each) < 2:
+        return None
+    return min(each) / int(probe["hours"]), max(each) / int(probe["hours"])
 
 
 def projected_cost(plan_hours: dict[str, int], runs: int, hello: dict[str, Any],
@@ -84,6 +103,7 @@ def projected_cost(plan_hours: dict[str, int], runs: int, hello: dict[str, Any],
                             .get("save_restore", False))
     hours = int(plan_hours["prefix_tree" if save_restore else "leaves"])
     sph = seconds_per_hour(hello)
+    spread = seconds_per_hour_range(hello)
     probe = hello.get("probe")
     why = ("builtin twin, not probed" if probe is None else
            f"the hello's probe run ended {probe.get('status')}: {probe.get('message')}")
@@ -93,8 +113,12 @@ def projected_cost(plan_hours: dict[str, int], runs: int, hello: dict[str, Any],
         "engine_hours": hours,
         "counted_as": "prefix tree (save/restore)" if save_restore else "runs x hours",
         "seconds_per_hour": sph,
+        "probe_runs": int((probe or {}).get("runs", 1)) if sph is not None else 0,
+        "seconds_per_hour_range": None if spread is None else list(spread),
         "workers": int(workers),
         "wall_seconds": None if sph is None else hours * sph / max(int(workers), 1),
+        "wall_seconds_range": None if spread is None else
+        [hours * v / max(int(workers), 1) for v in spread],
     }
 
 
@@ -107,5 +131,13 @@ def cost_line(twin: str, cost: dict[str, Any]) -> str:
     if cost["seconds_per_hour"] is None:
         why = cost.get("unknown_because") or "not measured"
         return line + f"; seconds per simulated hour unknown ({why})"
-    return (line + f"; at {cost['seconds_per_hour']:.3g} s per simulated hour on "
-            f"{cost['workers']} worker(s): about {format_duration(cost['wall_seconds'])} wall")
+    spread = cost.get("seconds_per_hour_range")
+    if not spread:
+        return (line + f"; at {cost['seconds_per_hour']:.3g} s per simulated hour on "
+                f"{cost['workers']} worker(s): about {format_duration(cost['wall_seconds'])} "
+                "wall")
+    lo, hi = cost["wall_seconds_range"]
+    return (line + f"; at {cost['seconds_per_hour']:.3g} s per simulated hour (median of "
+            f"{cost['probe_runs']} probe runs, {spread[0]:.3g}-{spread[1]:.3g} s) on "
+            f"{cost['workers']} worker(s): about {format_duration(cost['wall_seconds'])} wall "
+            f"({format_duration(lo)} to {format_duration(hi)})")

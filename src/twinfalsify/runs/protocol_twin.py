@@ -32,6 +32,16 @@ from twinfalsify.schema import FEATURES, ContractError
 from twinfalsify.twins.base import SimResult
 
 
+def probe_record(hours: int, seconds_each: list[float], status: str,
+                 message: str) -> dict[str, Any]:
+    """A hello's ``probe``: the timed runs (the last one ended ``status``) and the median
+    of their wall times as ``seconds``."""
+    return {"hours": int(hours), "runs": len(seconds_each),
+            "seconds": float(np.median(seconds_each)),
+            "seconds_each": [float(v) for v in seconds_each], "status": status,
+            "message": message}
+
+
 class ProtocolTwin:
     """A Twin (twins.base.Twin) backed by a subprocess speaking the protocol."""
 
@@ -61,13 +71,16 @@ class ProtocolTwin:
         # worker trouble of the last simulate call (runs.worker.WorkerPool.worker_stats)
         self.last_workers: dict[str, int] = {}
 
-    def hello(self, probe: dict[str, float] | None = None, hours: int = 1) -> dict[str, Any]:
+    def hello(self, probe: dict[str, float] | None = None, hours: int = 1,
+              runs: int = 1) -> dict[str, Any]:
         """Start one worker, return its (validated) hello answer, shut it down.
 
-        probe: an X_0; the worker then also simulates it for ``hours`` hours without doses
-        (seed 0) and the answer gets ``"probe": {"hours", "seconds", "status", "message"}``,
-        the wall time of that one run (start-up excluded): a first estimate of the twin's
-        seconds per simulated hour. A failed probe run is reported there, never raised.
+        probe: an X_0; the worker then also simulates it ``runs`` times (seeds 0, 1, ...)
+        for ``hours`` hours without doses and the answer gets ``"probe": {"hours", "runs",
+        "seconds", "seconds_each", "status", "message"}``: the wall time of each run
+        (start-up excluded) and their median, a first estimate of the twin's seconds per
+        simulated hour. A failed probe run ends the probe and is reported there, never
+        raised.
         """
         full_env = {**os.environ, **self.env} if self.env else None
         cmd = resolve_command(self.command, full_env)
@@ -78,26 +91,33 @@ class ProtocolTwin:
         try:
             hello = {k: v for k, v in worker.hello.items() if k != "declared_units"}
             if probe is not None:
-                hello["probe"] = self._probe(worker, probe, hours)
+                hello["probe"] = self._probe(worker, probe, hours, runs)
         finally:
             worker.close()
         return json.loads(json.dumps(hello))
 
-    def _probe(self, worker: Any, x0: dict[str, float], hours: int) -> dict[str, Any]:
-        request = {"op": "simulate", "id": "probe.0", "x0": {f: float(x0[f]) for f in FEATURES},
-                   "doses": [[0.0, 0.0]] * hours, "hours": hours, "seed": 0}
-        start = time.monotonic()
-        try:
-            answer = worker.ask(request, self.timeout_s)
-            status, message = check_result(answer, "probe.0", hours, FEATURES,
-                                           worker.hello["declared_units"], FEATURES).status, ""
-        except (WorkerDied, WorkerTimeout, ProtocolError) as exc:
-            status = "timeout" if isinstance(exc, WorkerTimeout) else "error"
-            message = str(exc) or f"no answer within {self.timeout_s:g} s"
-        else:
-            message = str(answer.get("message", "")) if status != "ok" else ""
-        return {"hours": hours, "seconds": time.monotonic() - start, "status": status,
-                "message": message}
+    def _probe(self, worker: Any, x0: dict[str, float], hours: int,
+               runs: int) -> dict[str, Any]:
+        each: list[float] = []
+        status, message = "ok", ""
+        for k in range(max(int(runs), 1)):
+            rid = f"probe.{k}"
+            request = {"op": "simulate", "id": rid, "x0": {f: float(x0[f]) for f in FEATURES},
+                       "doses": [[0.0, 0.0]] * hours, "hours": hours, "seed": k}
+            start = time.monotonic()
+            try:
+                answer = worker.ask(request, self.timeout_s)
+                status = check_result(answer, rid, hours, FEATURES,
+                                      worker.hello["declared_units"], FEATURES).status
+            except (WorkerDied, WorkerTimeout, ProtocolError) as exc:
+                status = "timeout" if isinstance(exc, WorkerTimeout) else "error"
+                message = str(exc) or f"no answer within {self.timeout_s:g} s"
+            else:
+                message = str(answer.get("message", "")) if status != "ok" else ""
+            each.append(time.monotonic() - start)
+            if status != "ok":
+                break
+        return probe_record(hours, each, status, message)
 
     @property
     def truncates(self) -> bool:

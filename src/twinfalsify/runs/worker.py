@@ -24,7 +24,7 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -265,13 +265,21 @@ class Worker:
             self._send(encode(msg).encode("utf-8"), deadline)
         except (OSError, ValueError):  # broken pipe: the worker is gone
             raise self._died() from None
+        return self.answer(deadline - time.monotonic())
+
+    def answer(self, timeout_s: float, until: Callable[[], bool] | None = None
+               ) -> dict[str, Any]:
+        """Wait for the next non-blank line (decoded), e.g. the answer to a request
+        ``ask`` timed out on; ``until()`` true ends the wait early (WorkerTimeout)."""
+        max_line = self.max_line
+        deadline = time.monotonic() + timeout_s
         exited_at: float | None = None
         while True:
             remaining = deadline - time.monotonic()
             try:
                 line = self.lines.get(timeout=max(min(remaining, PIPE_POLL_S), 0.0))
             except queue.Empty:
-                if remaining <= 0:
+                if remaining <= 0 or (until is not None and until()):
                     raise WorkerTimeout() from None
                 if exited_at is None:
                     if self.proc.returncode is not None or _leader_exited(self.proc.pid):

@@ -334,6 +334,17 @@ def unit_suspects(trajectories: pd.DataFrame) -> list[str]:
     return [m for f in FEATURES for m in [against_typical(f, float(medians[f]))] if m]
 
 
+def check_units(trajectories: pd.DataFrame, source: str) -> None:
+    """Stop (ContractError, one line) when ``unit_suspects`` names a feature: a study on a
+    table in another unit would blame the twin for the table's unit."""
+    suspects = unit_suspects(trajectories)
+    if suspects:
+        more = f" (and {len(suspects) - 1} more)" if len(suspects) > 1 else ""
+        raise ContractError(f"{source}: the rows follow the contract, but a feature looks like "
+                            f"another unit than the contract's: {suspects[0]}{more}; convert "
+                            "it (docs/reference/table.md)")
+
+
 def to_table(trajectories: pd.DataFrame, subject_id: pd.Series | None = None) -> pd.DataFrame:
     """Trajectories (contract frame) as a table: ``subject_id`` added after ``stay_id``
     (default: one patient per stay, subject_id = stay_id)."""
