@@ -11,12 +11,15 @@ than copies of them:
 - ``figures.*.outcome``: an outcome under test (``schema.OUTCOMES``);
 - ``source.table``: the table files exist and have the contract's columns
   (``sources.table.check_headers``; their values are checked by the source rule, first);
+- ``study`` and ``twins.<name>`` names: each is one folder name under results/
+  (:func:`name_error`: not ``.``/``..`` or hidden, at most ``MAX_NAME`` characters);
 - ``twins.<name>``: the spec builds (``runs.registry.check_spec``: features of shift/scale,
   doses of dose_effect, a command for kind command, a synthetic source for oracle/biased).
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,6 +33,11 @@ from twinfalsify.schema import OUTCOMES, ContractError
 # Shards hold whole groups of leaves with the same first action (runs.plan), so a plan has
 # at most this many non-empty shards.
 N_ACTIONS = N_DOSE_BINS * N_DOSE_BINS
+
+# A study or twin name is one folder name under results/ (results/<study>/twins/<twin>/),
+# in file names too; well under the file systems' 255 bytes per name.
+MAX_NAME = 100
+NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 
 
 def semantic_error(config: Mapping[str, Any]) -> str | None:
@@ -86,8 +94,33 @@ def study_config_error(config: Mapping[str, Any], schema_path: str | Path) -> st
     """Withdrawn options, the schema check, then :func:`semantic_error`: the first problem as
     one line, or None. A withdrawn option is named with its reason before the schema would
     only say "not one of"."""
-    return (removed_option_error(config) or config_error(dict(config), schema_path)
-            or semantic_error(config))
+    return (removed_option_error(config) or name_error(config)
+            or config_error(dict(config), schema_path) or semantic_error(config))
+
+
+def name_error(config: Mapping[str, Any]) -> str | None:
+    """A study or twin name that is not a plain folder name, as one line, or None.
+
+    ``study: '..'`` would write the study beside results/, ``'.'`` into results/ itself, a
+    twin named ``..`` into the study folder, and a name longer than a file system allows
+    would fail at the first job. Values of the wrong type are left to the schema.
+    """
+    names: list[tuple[str, Any]] = [("study", config.get("study"))]
+    twins = config.get("twins")
+    if isinstance(twins, Mapping):
+        names += [(f"twins.{n}", n) for n in twins]
+    for key, name in names:
+        if not isinstance(name, str):
+            continue
+        if len(name) > MAX_NAME:
+            shown = key if len(key) <= 40 else f"{key[:40]}..."
+            return (f"config key {shown}: a name of {len(name)} characters; "
+                    f"at most {MAX_NAME} (it names a folder under results/)")
+        if not NAME.fullmatch(name):
+            return (f"config key {key}: {name!r} is not a folder name: use letters, digits, "
+                    "'_', '-' and '.', not starting with '.' (it names a folder under "
+                    "results/)")
+    return None
 
 
 def removed_option_error(config: Mapping[str, Any]) -> str | None:

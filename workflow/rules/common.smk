@@ -1,4 +1,5 @@
 import json
+import re
 import shlex
 from pathlib import Path
 
@@ -111,7 +112,7 @@ def code(script, extra=(), leave=()):
 
 
 wildcard_constraints:
-    twin="|".join(TWINS),
+    twin="|".join(re.escape(t) for t in TWINS),
     shard=r"\d+",
 
 
