@@ -32,7 +32,6 @@ def main(sm):
         read_parquet(sm.input.d, "D"),
         read_parquet(sm.input.hypotheses, "hypotheses"),
         twins,
-        methods=sm.params.testing["methods"],
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)

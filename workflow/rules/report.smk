@@ -63,7 +63,6 @@ rule summary:
     params:
         study=STUDY,
         twins=TWINS,
-        testing=canon(config["testing"]),
         code=code("summary"),
     script:
         "../../scripts/summary.py"
