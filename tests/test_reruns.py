@@ -341,7 +341,11 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
     shutil.copy(config, work / "config" / f"{study_name}.yaml")
     command = command.replace("<study>", study_name).replace("<twin>", "ext").replace(
         "snakemake ", f"{shlex_quote(sys.executable)} -m snakemake -s "
-                     f"{shlex_quote(str(repo / 'Snakefile'))} ", 1)
+                     f"{shlex_quote(str(repo / 'Snakefile'))} ", 1).replace(
+        "$(python ", f"$({shlex_quote(sys.executable)} ")
+    # the twin's shard files deleted first: the command must not need them
+    for shard in (work / "results" / study_name / "twins" / "ext" / "shards").glob("*"):
+        shard.unlink()
     twins = work / "results" / study_name / "twins"
     before = {p: p.stat().st_mtime_ns for p in twins.rglob("*") if p.is_file()}
     done = subprocess.run(command, shell=True, cwd=work, capture_output=True, text=True,
@@ -352,8 +356,7 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
                if p.exists() and p.stat().st_mtime_ns != t}
     assert changed == {"ext"}, changed
     shards = sorted((twins / "ext" / "shards").glob("*.parquet"))
-    assert len(shards) == cfg["twin_runs"]["n_shards"]
-    assert all(p.stat().st_mtime_ns != before[p] for p in shards)
+    assert len(shards) == cfg["twin_runs"]["n_shards"]  # rebuilt
     assert (twins / "ext" / "results.parquet").stat().st_mtime_ns != before[
         twins / "ext" / "results.parquet"]
     assert dry_run(repo, work, config, *CONTENT_ONLY) == {}

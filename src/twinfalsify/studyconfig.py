@@ -20,6 +20,7 @@ than copies of them:
 from __future__ import annotations
 
 import re
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -142,3 +143,49 @@ def shard_count(config: Mapping[str, Any]) -> tuple[int, str | None]:
         f"config key twin_runs.n_shards: {asked} asked, but a shard holds whole first-action "
         f"groups and there are {N_ACTIONS} actions: using {N_ACTIONS} shards"
     )
+
+
+def shard_files(config: Mapping[str, Any], twin: str) -> list[str]:
+    """The shard files of ``twin`` in a validated config (schema defaults set): the outputs
+    of its shard jobs (fixed or adaptive mode), for ``snakemake --forcerun``, which reruns
+    them and everything that follows, whether or not they exist."""
+    if twin not in config["twins"]:
+        raise ContractError(f"no twin named {twin!r} in the config; its twins: "
+                            f"{', '.join(config['twins'])}")
+    n, _ = shard_count(config)
+    folder = "adaptive/shards" if config["twin_runs"]["mode"] == "adaptive" else "shards"
+    return [f"results/{config['study']}/twins/{twin}/{folder}/{k}.parquet" for k in range(n)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m twinfalsify.studyconfig shards CONFIG TWIN``: the twin's shard files, one
+    per line (docs/how-to/run-workflow.md, "Rerun one twin"); a bad config or an unknown twin
+    is one line on stderr and exit status 2."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m twinfalsify.studyconfig")
+    parser.add_argument("what", choices=["shards"])
+    parser.add_argument("config", help="the study config (YAML)")
+    parser.add_argument("twin", help="a twin's name in it")
+    args = parser.parse_args(argv)
+    from snakemake.utils import validate
+
+    from twinfalsify.io import load_yaml_strict
+
+    schema = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
+    try:
+        config = load_yaml_strict(args.config)
+        if not isinstance(config, dict):
+            raise ContractError(f"{args.config}: not a mapping of config keys")
+        if problem := study_config_error(config, schema):
+            raise ContractError(problem)
+        validate(config, str(schema))  # the schema's defaults
+        print("\n".join(shard_files(config, args.twin)))
+    except (ContractError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
