@@ -74,7 +74,7 @@ def copy_repo(repo: Path) -> Path:
     import shutil
 
     repo.mkdir(parents=True)
-    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+    for part in ("Snakefile", "profiles", "workflow", "scripts", "src", "config", "envs"):
         src, dst = ROOT / part, repo / part
         if src.is_dir():
             shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))

@@ -158,7 +158,27 @@ def test_library_edits_rerun_what_this_config_uses(study, path, reruns):
         assert "tests" in jobs and "twin_shard" not in jobs and "trajectories" not in jobs
 
 
-CONTENT_ONLY = ("--rerun-triggers", "mtime", "params", "input")  # as the profiles and make
+CONTENT_ONLY = ("--rerun-triggers", "mtime", "params", "input")  # as profiles/default
+
+
+def test_a_finished_study_started_from_another_checkout_has_nothing_to_do(study, tmp_path):
+    """Another clone of the repository in another folder (fresh file times), started with
+    the plain command: the project's profile (profiles/default, read by Snakemake from the
+    Snakefile's folder) gives its rerun triggers, so nothing reruns; without the profile
+    Snakemake's code trigger would rerun every job."""
+    repo, work, config, cfg, _ = study
+    other = copy_repo(tmp_path / "elsewhere" / "checkout")
+    for f in other.rglob("*"):  # a fresh clone: every file newer than the study's outputs
+        if f.is_file():
+            os.utime(f)
+    assert dry_run(other, work, config) == {}
+    assert dry_run(other, work, config, "--workflow-profile", "none")  # Snakemake's default
+    moved = tmp_path / "moved"  # the study folder moved with mv, started again
+    shutil.move(work, moved)
+    try:
+        assert dry_run(other, moved, config) == {}
+    finally:
+        shutil.move(moved, work)
 
 
 def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
@@ -171,7 +191,9 @@ def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
     script.write_bytes(text)  # as `git checkout` does: same bytes, new file, new time
     try:
         assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
-        assert "tests" in dry_run(repo, work, config)  # Snakemake's default: by time
+        # Snakemake's own default, without the project's profile: by time
+        assert "tests" in dry_run(repo, work, config, "--workflow-profile", "none")
+        assert dry_run(repo, work, config) == {}  # the project's profile: by content
         script.write_bytes(text + b"\n# an edit\n")  # new bytes: the rule and what follows
         jobs = dry_run(repo, work, config, *CONTENT_ONLY)
         assert "tests" in jobs and "twin_shard" not in jobs and "design" not in jobs, jobs
