@@ -256,7 +256,12 @@ def config_error(config: dict, schema_path: str | Path) -> str | None:
         key, value = bad
         return f"config key {key}: {value} is not a finite number"
     schema = yaml.load(Path(schema_path).read_text(), Loader=_safe_loader())  # noqa: S506
-    validator = jsonschema.validators.validator_for(schema)(schema)
+    base = jsonschema.validators.validator_for(schema)
+    # JSON Schema's "integer" admits 7.0; Snakemake would then compare the params 7.0 and
+    # 7 as different and rerun a finished study: an integer key takes an integer only
+    strict = base.TYPE_CHECKER.redefine(
+        "integer", lambda _, v: isinstance(v, int) and not isinstance(v, bool))
+    validator = jsonschema.validators.extend(base, type_checker=strict)(schema)
     error = jsonschema.exceptions.best_match(validator.iter_errors(config))
     if error is None:
         return None
