@@ -404,3 +404,27 @@ def test_a_shard_asking_slurm_for_more_than_a_day_is_warned_about(study):
     warned = [ln for ln in out.splitlines() if ln.startswith("WARNING: twin ext: shard")]
     assert len(warned) == 1 and "minutes (" in warned[0] and "days)" in warned[0], warned
     assert not [ln for ln in out.splitlines() if ln.startswith("WARNING: twin oracle")]
+
+
+def test_a_truncated_intermediate_file_is_named_with_delete_it(study):
+    """A shard file cut short (a full disk, a kill outside Snakemake's watch) looks finished
+    to Snakemake: the job reading it fails in one line naming the file and saying to delete
+    it; deleted, the same command again rebuilds it and the job that needed it."""
+    repo, work, config, cfg, _ = study
+    shard = work / "results" / cfg["study"] / "twins" / "oracle" / "shards" / "0.parquet"
+    data = shard.read_bytes()
+    shard.write_bytes(data[: len(data) // 2])
+    runs = f"results/{cfg['study']}/twins/oracle/runs.parquet"
+    done = _snakemake(repo, work, config, "--forcerun", runs, timeout=600)
+    out = done.stdout + done.stderr
+    assert done.returncode != 0
+    line = next(ln for ln in out.splitlines()[::-1] if "cannot read twin shard" in ln)
+    assert f"results/{cfg['study']}/twins/oracle/shards/0.parquet: cannot read twin shard " \
+           "as Parquet, the file is damaged or truncated" in line
+    assert line.endswith("delete it and run the same command again: the rule that writes it "
+                         "reruns"), line
+    shard.unlink()
+    done = _snakemake(repo, work, config, "--forcerun", runs, timeout=900)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert shard.is_file()
+    assert dry_run(repo, work, config) == {}
