@@ -91,6 +91,25 @@ def source_error(source: Mapping[str, Any]) -> str | None:
     return None
 
 
+def data_folder_error(config: Mapping[str, Any]) -> str | None:
+    """A MIMIC source whose folder cannot be found (config path, or the environment variable
+    that overrides it), as one line naming the key, or None (other kinds: None).
+
+    Not part of :func:`study_config_error`: a shipped config names no folder and is valid;
+    the workflow checks it when it starts, before the first rule."""
+    kind = (config.get("source") or {}).get("kind")
+    if kind not in ("mimic3", "mimic4"):
+        return None
+    from twinfalsify.sources.mimic3.tables import resolve_dir
+    from twinfalsify.sources.mimic_rule import layout_of
+
+    try:
+        resolve_dir(((config["source"].get(kind)) or {}).get("path"), layout_of(kind))
+    except ContractError as exc:
+        return f"config key source.{kind}.path: {exc}"
+    return None
+
+
 def study_config_error(config: Mapping[str, Any], schema_path: str | Path) -> str | None:
     """Withdrawn options, the schema check, then :func:`semantic_error`: the first problem as
     one line, or None. A withdrawn option is named with its reason before the schema would

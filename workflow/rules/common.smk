@@ -20,7 +20,11 @@ from twinfalsify.runs.plan import shard_runtime_minutes  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
 from twinfalsify.figure_ids import figure_ids_error  # noqa: E402
-from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E402
+from twinfalsify.studyconfig import (
+    data_folder_error,
+    shard_count,
+    study_config_error,
+)  # noqa: E402
 
 
 # Everything that can be checked from the config alone is checked here, at parse time,
@@ -41,6 +45,9 @@ _problem = _config_problem()
 if _problem:
     raise ValueError(f"invalid config: {_problem}")
 validate(config, schema="../schemas/config.schema.yaml")
+# a MIMIC folder that is not there stops the run now, not at the first rule
+if _problem := data_folder_error(config):
+    raise ValueError(f"invalid config: {_problem}")
 
 STUDY = config["study"]
 R = f"results/{STUDY}"
