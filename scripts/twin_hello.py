@@ -6,6 +6,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 - library without install
 
 from twinfalsify.io import log, run_rule, write_json  # noqa: E402
+from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.hello import twin_hello  # noqa: E402
 from twinfalsify.runs.registry import with_execution_keys  # noqa: E402
 
@@ -13,7 +14,10 @@ from twinfalsify.runs.registry import with_execution_keys  # noqa: E402
 def main(sm):
     name = sm.wildcards.twin
     spec = with_execution_keys(dict(sm.params.spec), sm.config["twins"][name])
-    hello = twin_hello(name, spec)
+    src = Path(sm.scriptdir).parent / "src"
+    # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
+    with watch_code(spec, src, Path(sm.output[0]).parent / "code_written" / "hello.json"):
+        hello = twin_hello(name, spec)
     log.info("twin %s: %s; probe run %s", name, hello.get("hello") or hello["checked"],
              hello["probe"])
     probe = hello["probe"]

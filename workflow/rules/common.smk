@@ -59,10 +59,13 @@ LOGS = f"{R}/logs"
 
 
 def _code_paths_problem():
-    from twinfalsify.runs.command import code_paths_error
+    from twinfalsify.runs.command import code_paths_error, code_written_error
 
     for name, spec in config["twins"].items():
         if problem := code_paths_error(name, spec, "results"):
+            return problem
+        # a file the twin wrote in an earlier job, still in its fingerprint
+        if problem := code_written_error(name, spec, f"{R}/twins/{name}", SRC):
             return problem
     return None
 
