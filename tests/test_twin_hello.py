@@ -15,7 +15,14 @@ from fakes import FAULTY_TWIN
 from slurm.runs import run
 from test_bad_inputs import BASE_CONFIG, ENV
 
-from twinfalsify.runs.hello import cost_line, projected_cost, seconds_per_hour, twin_hello
+from twinfalsify.runs.hello import (
+    cost_line,
+    projected_cost,
+    seconds_per_hour,
+    split_timing,
+    twin_hello,
+    with_timing,
+)
 from twinfalsify.schema import ContractError
 
 FAKES = Path(__file__).with_name("fakes")
@@ -45,6 +52,12 @@ def test_a_good_hello_is_kept_with_its_timed_probe_run(tmp_path):
     assert len(log.read_text().splitlines()) == 1  # exactly one run, one hour
     assert out["probe"]["status"] == "ok" and out["probe"]["hours"] == 1
     assert 0.3 <= seconds_per_hour(out) < 5.0  # the twin's own delay, start-up excluded
+    # hello.json keeps no measured time (the same at every run); the rule writes the
+    # seconds under benchmarks/, and twin_cost puts them back
+    kept, timing = split_timing(out)
+    assert "seconds" not in kept["probe"] and timing == {"seconds": out["probe"]["seconds"]}
+    assert with_timing(kept, timing) == out
+    assert seconds_per_hour(kept) is None
 
 
 def test_python_and_builtin_twins_are_checked_in_process():
