@@ -16,9 +16,33 @@ import yaml
 from conftest import ROOT, run_snakemake
 from fakes import FAULTY_TWIN
 
-pytestmark = pytest.mark.slow
+
+def test_a_write_through_a_symlinked_code_folder_is_named_and_excludable(tmp_path,
+                                                                      monkeypatch):
+    """``code: [link/]`` with link -> twin/: a file the twin writes under twin/cache/ is
+    recorded, named at the next start, and ``code_exclude`` by either name leaves it out."""
+    from twinfalsify.runs.command import code_written_error, command_fingerprint, watch_code
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "twin" / "cache").mkdir(parents=True)
+    (tmp_path / "twin" / "main.py").write_text("print('twin')\n")
+    (tmp_path / "link").symlink_to(tmp_path / "twin", target_is_directory=True)
+    spec = {"kind": "command", "command": "python twin/main.py", "code": ["link/"]}
+    folder = tmp_path / "results" / "s" / "twins" / "t"
+    before = command_fingerprint(spec)
+    with watch_code(spec, None, folder / "code_written" / "shard_0.json"):
+        (tmp_path / "twin" / "cache" / "state.bin").write_bytes(b"x")
+    assert command_fingerprint(spec) != before  # what would rerun it at every start
+    problem = code_written_error("t", spec, folder)
+    assert problem is not None and "'link/cache/state.bin'" in problem
+    assert "twins.t.code_exclude" in problem
+    for exclude in (["link/cache/"], ["twin/cache"]):
+        fixed = {**spec, "code_exclude": exclude}
+        assert code_written_error("t", fixed, folder) is None
+        assert command_fingerprint(fixed) == before
 
 
+@pytest.mark.slow
 def _config(tmp_path, excludes: dict[str, list[str]]):
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     cfg["twin_runs"].update(runs_per_sequence=20, n_shards=2)
