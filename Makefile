@@ -20,7 +20,7 @@ setup: $(STAMP)
 
 ## Set up and run the default study (synthetic world, builtin twins).
 reproduce: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES) --rerun-triggers mtime params input
+	$(BIN)/snakemake --cores $(CORES)
 
 ## Set up and run the whole test suite, on two workers (pytest-xdist; a test file runs whole
 ## on one worker).
@@ -34,7 +34,7 @@ test-fast: $(STAMP)
 ## Build the study of CONFIG (default: the default study) and its browsable report:
 ## results/<study>/report.html, one self-contained file with every figure and caption.
 report: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG) --rerun-triggers mtime params input
+	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG)
 	$(BIN)/snakemake --cores $(CORES) --configfile $(CONFIG) --report results/$(STUDY)/report.html
 
 lint: $(STAMP)

@@ -36,7 +36,6 @@ def main(sm):
         read_parquet(sm.input.d, "D"),
         read_parquet(sm.input.hypotheses, "hypotheses"),
         twins,
-        methods=sm.params.testing["methods"],
         ties=tie_table(read_parquet(sm.input.d, "D"),
                        ActionBins.from_json(read_json(sm.input.actions)), int(sm.params.seed)),
     )

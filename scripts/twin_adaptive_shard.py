@@ -9,6 +9,7 @@ from twinfalsify import bounds  # noqa: E402
 from twinfalsify.design import ActionBins, StateBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, write_parquet  # noqa: E402
 from twinfalsify.runs.adaptive import budget_warning, run_adaptive_shard  # noqa: E402
+from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, x0_frame  # noqa: E402
 from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
@@ -34,7 +35,22 @@ def main(sm):
     spec = with_execution_keys(spec, sm.config["twins"][sm.wildcards.twin])
     twin = make_twin(sm.wildcards.twin, spec, sm.input.context)  # a served twin needs the file
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
-    rows, decisions, summary = run_adaptive_shard(
+    # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
+    written = (Path(sm.output.runs).parents[2] / "code_written"
+               / f"adaptive_shard_{sm.wildcards.shard}.json")
+    with watch_code(spec, Path(sm.scriptdir).parent / "src", written):
+        rows, decisions, summary = _run(sm, twin, plan, x0, hyps, obs, runs_cfg, testing)
+    log.info("shard %s: %s", sm.wildcards.shard, summary)
+    warning = budget_warning(summary)
+    if warning:
+        log.warning("WARNING: %s", warning)
+    write_parquet(rows, sm.output.runs)
+    write_parquet(decisions, sm.output.decisions)
+    write_json(summary, sm.output.summary)
+
+
+def _run(sm, twin, plan, x0, hyps, obs, runs_cfg, testing):
+    return run_adaptive_shard(
         twin,
         plan,
         int(sm.wildcards.shard),
@@ -52,13 +68,6 @@ def main(sm):
         failed_runs=str(testing.get("failed_runs", "conservative")),
         log=_Log(),
     )
-    log.info("shard %s: %s", sm.wildcards.shard, summary)
-    warning = budget_warning(summary)
-    if warning:
-        log.warning("WARNING: %s", warning)
-    write_parquet(rows, sm.output.runs)
-    write_parquet(decisions, sm.output.decisions)
-    write_json(summary, sm.output.summary)
 
 
 run_rule(snakemake, main)  # noqa: F821

@@ -7,6 +7,7 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 
 from twinfalsify.design import ActionBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
+from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, restart_warning, run_shard, x0_frame  # noqa: E402
 from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
 
@@ -21,9 +22,11 @@ def main(sm):
         spec["workers"] = max(1, min(int(spec["workers"]), int(sm.threads)))
     twin = make_twin(sm.wildcards.twin, spec, sm.input.context)
     x0 = x0_frame(read_parquet(sm.input.d, "D"), plan.x0_stay_ids)
-    runs = run_shard(
-        twin, plan, int(sm.wildcards.shard), x0, ActionBins.from_json(read_json(sm.input.actions))
-    )
+    shard = int(sm.wildcards.shard)
+    # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
+    written = Path(sm.output[0]).parents[1] / "code_written" / f"shard_{shard}.json"
+    with watch_code(spec, Path(sm.scriptdir).parent / "src", written):
+        runs = run_shard(twin, plan, shard, x0, ActionBins.from_json(read_json(sm.input.actions)))
     log.info(
         "shard %s: %d node rows, status %s",
         sm.wildcards.shard,

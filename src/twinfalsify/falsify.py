@@ -33,7 +33,7 @@ Method = Callable[[HypothesisSamples], tuple[np.ndarray, np.ndarray]]
 RESULT_COLUMNS = (
     "hyp_id", "kind", "outcome", "t", "side", "method", "n", "n_follow", "nhat", "n_failed",
     "failed_runs", "y_lo", "y_up", "q_lo_hat", "q_up_hat", "q_twin_hat", "q_obs_hat", "propensity",
-    "p_value", "p_floor", "rejected", "correction", "alpha",
+    "p_value", "p_floor", "refused", "rejected", "correction", "alpha",
 )  # fmt: skip
 
 
@@ -89,6 +89,8 @@ def run_tests(
             part["p_value"] = np.asarray(p, float)
             # True: p is a reporting floor (bootstrap: every resample separated)
             part["p_floor"] = registry.floored(name, method, part["p_value"].to_numpy())
+            # True: the method did not test it (p = 1 by rule: too few samples)
+            part["refused"] = registry.refused(name, method, samples.n, samples.nhat)
             parts.append(part)
     out = pd.concat(parts, ignore_index=True)
     families = (out["method"].astype(str) + "\x00" + out["kind"].astype(str)).to_numpy()

@@ -120,13 +120,24 @@ def read_json(path: str | Path) -> Any:
 
 
 def read_parquet(path: str | Path, what: str = "table") -> pd.DataFrame:
+    """A file the workflow wrote, read; a missing or damaged one is one line naming it.
+
+    A damaged file (truncated by a full disk or a kill outside Snakemake's watch) looks
+    finished to Snakemake, so every start that needs it would fail on it: the line says to
+    delete it, after which the same command reruns the rule that writes it.
+    """
     path = Path(path)
     if not path.exists():
         raise ContractError(f"{path}: {what} not found")
     try:
         return pd.read_parquet(path)
     except Exception as exc:  # noqa: BLE001 - re-raised with the file named
-        raise ContractError(f"{path}: cannot read {what} as Parquet ({exc})") from None
+        detail = " ".join(str(exc).split())[:200]
+        raise ContractError(
+            f"{path}: cannot read {what} as Parquet, the file is damaged or truncated "
+            f"({detail}); delete it and run the same command again: the rule that writes it "
+            "reruns"
+        ) from None
 
 
 def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
@@ -256,7 +267,12 @@ def config_error(config: dict, schema_path: str | Path) -> str | None:
         key, value = bad
         return f"config key {key}: {value} is not a finite number"
     schema = yaml.load(Path(schema_path).read_text(), Loader=_safe_loader())  # noqa: S506
-    validator = jsonschema.validators.validator_for(schema)(schema)
+    base = jsonschema.validators.validator_for(schema)
+    # JSON Schema's "integer" admits 7.0; Snakemake would then compare the params 7.0 and
+    # 7 as different and rerun a finished study: an integer key takes an integer only
+    strict = base.TYPE_CHECKER.redefine(
+        "integer", lambda _, v: isinstance(v, int) and not isinstance(v, bool))
+    validator = jsonschema.validators.extend(base, type_checker=strict)(schema)
     error = jsonschema.exceptions.best_match(validator.iter_errors(config))
     if error is None:
         return None

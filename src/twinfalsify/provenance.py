@@ -7,8 +7,8 @@ job whose params changed, so a fix in ``bounds.py`` reruns exactly the rules who
 reach ``bounds.py`` and nothing else. The script's own bytes are in it too: Snakemake's own
 "code" trigger compares a script's modification time with its outputs', so a script
 restored with the same bytes (``git checkout``) reruns its rule under it; with
-``--rerun-triggers mtime params input`` (the workflow profiles, ``make``) this fingerprint
-alone decides, by content.
+``--rerun-triggers mtime params input`` (the project's profile ``profiles/default``, read at
+every start) this fingerprint alone decides, by content.
 
 Every ``import`` counts, including those inside functions (a lazy import is still a
 dependency). A module a script only starts as a subprocess by name (``python -m

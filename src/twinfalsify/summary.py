@@ -338,18 +338,19 @@ def clamp_shares(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["feature", "x0_clamped", "share"])
 
 
-def refused(results: pd.DataFrame, methods: Mapping[str, Mapping] | None = None) -> np.ndarray:
-    """Per results row: the method could not test the hypothesis (p = 1 by rule, not by
-    evidence): n = 0 or nhat = 0 for every method; for the bootstrap also n or nhat below
-    its ``min_n`` (default 100)."""
-    out = (results["n"].to_numpy() == 0) | (results["nhat"].to_numpy() == 0)
-    for name, opts in (methods or {}).items():
-        if name != "bootstrap":
+def refusal_lines(results: pd.DataFrame) -> list[str]:
+    """One line per method that refused hypotheses (results column ``refused``: p = 1 by
+    rule, not by evidence), with its count per kind: what the console and the log say, so
+    that a refused hypothesis is not read as tested and not rejected."""
+    out = []
+    for method, part in results.groupby("method", sort=False):
+        counts = part[part["refused"]].groupby("kind", sort=True).size()
+        if counts.sum() == 0:
             continue
-        min_n = max(int((opts or {}).get("min_n", 100)), 1)
-        mine = results["method"].to_numpy() == name
-        small = (results["n"].to_numpy() < min_n) | (results["nhat"].to_numpy() < min_n)
-        out |= mine & small
+        per_kind = ", ".join(f"{int(c)} of {int((part['kind'] == k).sum())} {k}"
+                             for k, c in counts.items())
+        out.append(f"{method} refused {per_kind} hypotheses (too few samples: p = 1 by rule, "
+                   "not tested; results column 'refused')")
     return out
 
 
@@ -430,15 +431,15 @@ def study_summary(
     hyps: pd.DataFrame,
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
-    methods: Mapping[str, Mapping] | None = None,
     ties: pd.DataFrame | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
-    optionally "clipped": clipped_shares(...)}; methods: ``testing.methods`` (which
-    hypotheses each method refuses, see ``refused``).
+    optionally "clipped": clipped_shares(...)}; the results' column ``refused`` says which
+    hypotheses each method did not test.
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
-    clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
+    clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind:
+    rejected, refused, tested),
     untestable (parameter sets with n = 0 or nhat = 0, per twin and kind), workers
     (worker restarts per twin and shard, from the runs' ``twin_workers`` attribute that
     the twin_runs rule writes; none for in-process twins), failing (warnings).
@@ -461,12 +462,12 @@ def study_summary(
         cl = clamp_shares(runs)
         cl.insert(0, "twin", name)
         clamp_rows.append(cl)
-        g = res.assign(untestable=refused(res, methods)).groupby(["method", "kind"])
+        g = res.groupby(["method", "kind"])
         rej = pd.DataFrame({"hypotheses": g.size(), "rejected": g["rejected"].sum(),
-                            "untestable": g["untestable"].sum()}).reset_index()
+                            "refused": g["refused"].sum()}).reset_index()
         if "seed_fragile" in res:  # decisions that change under another order seed
             rej["seed_fragile"] = g["seed_fragile"].sum().to_numpy()
-        rej["tested"] = rej["hypotheses"] - rej["untestable"]
+        rej["tested"] = rej["hypotheses"] - rej["refused"]
         rej.insert(0, "twin", name)
         rej_rows.append(rej)
         first = res.drop_duplicates("hyp_id")
@@ -477,6 +478,7 @@ def study_summary(
         unt_rows.append(u)
         if "init_stay_id" in runs and failing_patients(runs, name):
             failing.append(failing_patients(runs, name))
+        failing += [f"twin {name}: {line}" for line in refusal_lines(res)]
         workers = runs.attrs.get("twin_workers") or {}
         for shard, stats in enumerate(workers.get("per_shard", [])):
             worker_rows.append({"twin": name, "shard": shard, **stats})
@@ -498,7 +500,7 @@ def study_summary(
         "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
         "clamps": cat(clamp_rows, ["twin", "feature", "x0_clamped", "share"]),
         "rejections": cat(rej_rows, ["twin", "method", "kind", "hypotheses", "rejected",
-                                     "untestable", "tested"]),
+                                     "refused", "tested"]),
         "untestable": cat(unt_rows, ["twin", "kind", "untestable", "n_zero", "nhat_zero"]),
         "failing": pd.DataFrame({"warning": failing}, dtype=object),
         "workers": pd.DataFrame(worker_rows, columns=["twin", "shard", *WORKER_STATS]),
@@ -513,10 +515,11 @@ _TITLES = {
     "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
     "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
     "clamps": "Share of twin initial states clamped, per feature",
-    "rejections": "Rejections per twin, method and kind (after correction); untestable: "
-                  "hypotheses the method refused (p = 1 by rule: n or nhat = 0, or below "
-                  "the bootstrap's min_n), so tested = hypotheses - untestable; seed_fragile "
-                  "(with testing.seed_check): decisions that change under another order seed",
+    "rejections": "Rejections per twin, method and kind (after correction); refused: "
+                  "hypotheses the method did not test (p = 1 by rule: n or nhat = 0, or "
+                  "below the bootstrap's min_n; results column refused), so tested = "
+                  "hypotheses - refused; seed_fragile (with testing.seed_check): decisions "
+                  "that change under another order seed",
     "untestable": "Untestable parameter sets (n = 0 or nhat = 0: p = 1 by rule)",
     "workers": "Twin worker restarts per shard (served twins): crashes (died during a "
                "request), hangs (killed at timeout_s), malformed answers",

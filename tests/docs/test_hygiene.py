@@ -19,7 +19,8 @@ import pytest
 from helpers.paths import ROOT
 
 SCOPE = ("README.md", "CHANGELOG.md", "CITATION.cff", "LICENSE", "docs", "src", "config",
-         "tests", "benchmarks", "envs", "scripts", "workflow", "Snakefile", "Makefile",
+         "tests", "benchmarks", "envs", "scripts", "workflow", "profiles", "Snakefile",
+         "Makefile",
          "mkdocs.yml", ".ci")  # fmt: skip
 SELF = Path(__file__).resolve()
 # third-party files served with the docs site (KaTeX from npm): not the project's words

@@ -15,6 +15,7 @@ deterministically. ``--mode MODE[:SELECTOR]`` may be repeated; SELECTOR is
 equals R). The first matching mode wins. Per-run modes:
 
     crash          exit (code 3) mid-request after writing half an answer line
+    close_stdout   close stdout mid-request and keep running (sleeps)
     crash_once     crash the first time a seed is seen (needs --state-dir), then work
     hang           never answer (sleeps)
     garbage        write a line that is not JSON
@@ -101,7 +102,8 @@ from twinfalsify.runs.truncation import hours_needed, parse_paths
 from twinfalsify.schema import FEATURE_TABLE, FEATURES
 
 RUN_MODES = (
-    "ok", "crash", "crash_once", "hang", "garbage", "malformed", "wrong_id", "wrong_features",
+    "ok", "crash", "close_stdout", "crash_once", "hang", "garbage", "malformed", "wrong_id",
+    "wrong_features",
     "fewer_hours", "non_numeric", "irreversible", "init_failed", "error", "slow", "clamp",
     "batch_short", "implausible", "negative",
     "chatty", "nondeterministic", "lookahead", "batch_differs", "stale_restore",
@@ -252,6 +254,11 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
         out.write('{"op": "result", "id": ')  # half a line, then die
         out.flush()
         os._exit(3)
+    if mode == "close_stdout":
+        print(f"faulty: closing stdout on seed {seed}", file=sys.stderr, flush=True)
+        out.flush()
+        os.close(out.fileno())
+        time.sleep(3600)
     if mode == "hang":
         print(f"faulty: hanging on seed {seed}", file=sys.stderr, flush=True)
         time.sleep(3600)

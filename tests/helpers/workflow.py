@@ -59,7 +59,7 @@ def copy_repo(repo: Path) -> Path:
     """A copy of what a study needs from the checkout (Snakefile, workflow, scripts, src,
     config, envs) in ``repo``, so a test may edit code without touching the checkout."""
     repo.mkdir(parents=True)
-    for part in ("Snakefile", "workflow", "scripts", "src", "config", "envs"):
+    for part in ("Snakefile", "profiles", "workflow", "scripts", "src", "config", "envs"):
         src, dst = ROOT / part, repo / part
         if src.is_dir():
             shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))

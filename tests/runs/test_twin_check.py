@@ -39,8 +39,13 @@ X0 = shipped_x0()[:2]  # two patients keep each case to a few seconds
 
 # faulty_twin.py arguments -> {check that must fail: fragment of its detail}
 FAULTS: dict[str, tuple[list[str], dict[str, str]]] = {
-    "crash": (["--mode", "crash"], {"protocol": "the twin exited during the run",
+    "crash": (["--mode", "crash"], {"protocol": "the twin exited during the run (worker "
+                                                "exited with code 3",
                                     "simulates": "0 of 6 runs ok"}),
+    "close_stdout": (["--mode", "close_stdout"], {
+        "protocol": "the twin closed its stdout during the run (worker closed its stdout "
+                    "but kept running (killed by the runner)",
+        "simulates": "0 of 6 runs ok"}),
     "hang": (["--mode", "hang"], {"time": "without an answer within timeout_s = 2 s",
                                   "simulates": "stopped after 2 of 6 runs"}),
     "garbage": (["--mode", "garbage"], {"protocol": "not JSON: stdout must carry only",

@@ -20,7 +20,9 @@ from twinfalsify.runs.hello import (
     projected_cost,
     seconds_per_hour,
     seconds_per_hour_range,
+    split_timing,
     twin_hello,
+    with_timing,
 )
 from twinfalsify.schema import ContractError
 
@@ -55,6 +57,13 @@ def test_a_good_hello_is_kept_with_its_timed_probe_runs(tmp_path):
     assert len(each) == 3 and out["probe"]["seconds"] == float(np.median(each))
     assert 0.3 <= seconds_per_hour(out) < 5.0  # the twin's own delay, start-up excluded
     assert seconds_per_hour_range(out) == (min(each), max(each))
+    # hello.json keeps no measured time (the same at every run); the rule writes the
+    # times under benchmarks/, and twin_cost puts them back
+    kept, timing = split_timing(out)
+    assert "seconds" not in kept["probe"] and "seconds_each" not in kept["probe"]
+    assert timing == {"seconds": out["probe"]["seconds"], "seconds_each": each}
+    assert with_timing(kept, timing) == out
+    assert seconds_per_hour(kept) is None
 
 
 def test_python_and_builtin_twins_are_checked_in_process():

@@ -60,6 +60,9 @@ def test_mixed_faults_every_run_accounted_once():
         111: ("error", "error", "engine error"),
         112: ("clamp", "ok", "pid="),
         113: ("ok", "ok", "pid="),
+        # the twin's own act, not the runner's kill: not reported as "exit code -9"
+        114: ("close_stdout", "error", "closed its stdout but kept running (killed by the "
+                                       "runner)"),
     }
     x0, doses, seeds = make_inputs(len(plan))
     x0.loc[12, "HR"] = 150.0  # the clamp twin clamps HR > 110

@@ -85,7 +85,8 @@ def test_study_summary_shows_restarts_per_shard_and_a_warning():
     runs = pd.DataFrame({"node": ["0"] * 2, "t": [1, 1], "init_stay_id": [1, 2],
                          "status": ["ok", "ok"], "clamped": ["{}", "{}"]})
     res = pd.DataFrame({"hyp_id": [0], "kind": ["causal"], "method": ["hoeffding"],
-                        "rejected": [False], "n": [5], "nhat": [5], "p_value": [0.5]})
+                        "rejected": [False], "refused": [False], "n": [5], "nhat": [5],
+                        "p_value": [0.5]})
     shaky = {"restarts": 4, "crashes": 4, "hangs": 0, "protocol_breaks": 0}
     calm = dict.fromkeys(shaky, 0)
     stable = runs.copy()

@@ -74,7 +74,9 @@ def test_config_error_is_one_line_naming_the_key(case):
                                   "alpha_nan", "reversed_quantiles", "unknown_method_option",
                                   "shift_unknown_feature", "hoeffding_factor_zero",
                                   "command_program_does_not_exist", "command_script_missing",
-                                  "seed_too_large"])
+                                  "seed_too_large", "study_dotdot", "study_dot",
+                                  "twin_dotdot", "study_300_characters",
+                                  "seed_float_integral"])
 def test_snakemake_refuses_bad_config_and_writes_nothing(case, tmp_path):
     spec = CONFIG_CASES[case]
     config = tmp_path / "bad.yaml"

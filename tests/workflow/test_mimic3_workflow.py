@@ -126,3 +126,22 @@ def test_another_mimic3_dir_reruns_the_extraction(tmp_path):
     other = snake(b, "-n")
     out = other.stdout + other.stderr
     assert other.returncode == 0 and "rule trajectories" in out, out[-3000:]
+
+
+@pytest.mark.parametrize("kind", ["mimic3", "mimic4"])
+def test_a_missing_mimic_folder_is_refused_when_the_workflow_starts(tmp_path, monkeypatch,
+                                                                    kind):
+    """The folder is checked at parse time, in one line naming the key: no rule runs."""
+    from conftest import mimic_study_config, run_snakemake
+
+    for var in ("TWINFALSIFY_MIMIC3_DIR", "TWINFALSIFY_MIMIC4_DIR"):
+        monkeypatch.delenv(var, raising=False)
+    config = tmp_path / "study.yaml"
+    config.write_text(yaml.safe_dump(mimic_study_config("gone", kind, str(tmp_path / "nope"))))
+    done = run_snakemake(tmp_path, config, "--cores", "1", timeout=300)
+    out = done.stdout + done.stderr
+    assert done.returncode != 0
+    line = next(ln for ln in out.splitlines() if ln.startswith("invalid config:"))
+    assert line.startswith(f"invalid config: config key source.{kind}.path: ")
+    assert f"{tmp_path / 'nope'}" in line and "does not exist" in line
+    assert not (tmp_path / "results").exists()

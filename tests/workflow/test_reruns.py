@@ -158,7 +158,27 @@ def test_library_edits_rerun_what_this_config_uses(study, path, reruns):
         assert "tests" in jobs and "twin_shard" not in jobs and "trajectories" not in jobs
 
 
-CONTENT_ONLY = ("--rerun-triggers", "mtime", "params", "input")  # as the profiles and make
+CONTENT_ONLY = ("--rerun-triggers", "mtime", "params", "input")  # as profiles/default
+
+
+def test_a_finished_study_started_from_another_checkout_has_nothing_to_do(study, tmp_path):
+    """Another clone of the repository in another folder (fresh file times), started with
+    the plain command: the project's profile (profiles/default, read by Snakemake from the
+    Snakefile's folder) gives its rerun triggers, so nothing reruns; without the profile
+    Snakemake's code trigger would rerun every job."""
+    repo, work, config, cfg, _ = study
+    other = copy_repo(tmp_path / "elsewhere" / "checkout")
+    for f in other.rglob("*"):  # a fresh clone: every file newer than the study's outputs
+        if f.is_file():
+            os.utime(f)
+    assert dry_run(other, work, config) == {}
+    assert dry_run(other, work, config, "--workflow-profile", "none")  # Snakemake's default
+    moved = tmp_path / "moved"  # the study folder moved with mv, started again
+    shutil.move(work, moved)
+    try:
+        assert dry_run(other, moved, config) == {}
+    finally:
+        shutil.move(moved, work)
 
 
 def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
@@ -171,7 +191,9 @@ def test_a_rule_script_with_the_same_bytes_reruns_nothing(study):
     script.write_bytes(text)  # as `git checkout` does: same bytes, new file, new time
     try:
         assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
-        assert "tests" in dry_run(repo, work, config)  # Snakemake's default: by time
+        # Snakemake's own default, without the project's profile: by time
+        assert "tests" in dry_run(repo, work, config, "--workflow-profile", "none")
+        assert dry_run(repo, work, config) == {}  # the project's profile: by content
         script.write_bytes(text + b"\n# an edit\n")  # new bytes: the rule and what follows
         jobs = dry_run(repo, work, config, *CONTENT_ONLY)
         assert "tests" in jobs and "twin_shard" not in jobs and "design" not in jobs, jobs
@@ -341,7 +363,11 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
     shutil.copy(config, work / "config" / f"{study_name}.yaml")
     command = command.replace("<study>", study_name).replace("<twin>", "ext").replace(
         "snakemake ", f"{shlex_quote(sys.executable)} -m snakemake -s "
-                     f"{shlex_quote(str(repo / 'Snakefile'))} ", 1)
+                     f"{shlex_quote(str(repo / 'Snakefile'))} ", 1).replace(
+        "$(python ", f"$({shlex_quote(sys.executable)} ")
+    # the twin's shard files deleted first: the command must not need them
+    for shard in (work / "results" / study_name / "twins" / "ext" / "shards").glob("*"):
+        shard.unlink()
     twins = work / "results" / study_name / "twins"
     before = {p: p.stat().st_mtime_ns for p in twins.rglob("*") if p.is_file()}
     done = subprocess.run(command, shell=True, cwd=work, capture_output=True, text=True,
@@ -352,8 +378,7 @@ def test_the_documented_rerun_of_one_twin_reruns_exactly_that_twin(study):
                if p.exists() and p.stat().st_mtime_ns != t}
     assert changed == {"ext"}, changed
     shards = sorted((twins / "ext" / "shards").glob("*.parquet"))
-    assert len(shards) == cfg["twin_runs"]["n_shards"]
-    assert all(p.stat().st_mtime_ns != before[p] for p in shards)
+    assert len(shards) == cfg["twin_runs"]["n_shards"]  # rebuilt
     assert (twins / "ext" / "results.parquet").stat().st_mtime_ns != before[
         twins / "ext" / "results.parquet"]
     assert dry_run(repo, work, config, *CONTENT_ONLY) == {}
@@ -379,3 +404,27 @@ def test_a_shard_asking_slurm_for_more_than_a_day_is_warned_about(study):
     warned = [ln for ln in out.splitlines() if ln.startswith("WARNING: twin ext: shard")]
     assert len(warned) == 1 and "minutes (" in warned[0] and "days)" in warned[0], warned
     assert not [ln for ln in out.splitlines() if ln.startswith("WARNING: twin oracle")]
+
+
+def test_a_truncated_intermediate_file_is_named_with_delete_it(study):
+    """A shard file cut short (a full disk, a kill outside Snakemake's watch) looks finished
+    to Snakemake: the job reading it fails in one line naming the file and saying to delete
+    it; deleted, the same command again rebuilds it and the job that needed it."""
+    repo, work, config, cfg, _ = study
+    shard = work / "results" / cfg["study"] / "twins" / "oracle" / "shards" / "0.parquet"
+    data = shard.read_bytes()
+    shard.write_bytes(data[: len(data) // 2])
+    runs = f"results/{cfg['study']}/twins/oracle/runs.parquet"
+    done = _snakemake(repo, work, config, "--forcerun", runs, timeout=600)
+    out = done.stdout + done.stderr
+    assert done.returncode != 0
+    line = next(ln for ln in out.splitlines()[::-1] if "cannot read twin shard" in ln)
+    assert f"results/{cfg['study']}/twins/oracle/shards/0.parquet: cannot read twin shard " \
+           "as Parquet, the file is damaged or truncated" in line
+    assert line.endswith("delete it and run the same command again: the rule that writes it "
+                         "reruns"), line
+    shard.unlink()
+    done = _snakemake(repo, work, config, "--forcerun", runs, timeout=900)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert shard.is_file()
+    assert dry_run(repo, work, config) == {}

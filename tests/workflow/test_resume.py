@@ -34,7 +34,7 @@ from slurm.runs import (
 )
 
 pytestmark = pytest.mark.slow
-PROFILE = str(ROOT / "workflow" / "profiles" / "default")
+PROFILE = str(ROOT / "workflow" / "profiles" / "local")
 N_SHARDS = 4
 
 

@@ -9,7 +9,7 @@ ADAPTIVE_OUT = twin_dir() if ADAPTIVE else f"{twin_dir()}/adaptive"
 rule twin_shard_adaptive:
     input:
         # the twin's hello is checked and its cost printed before its first shard
-        cost=f"{twin_dir()}/cost.json",
+        cost=f"{R}/benchmarks/twins/{{twin}}/cost.json",
         plan=f"{R}/twin_plan.json",
         context=f"{R}/twin_context.json",
         d=f"{R}/d.parquet",

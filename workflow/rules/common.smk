@@ -1,4 +1,5 @@
 import json
+import re
 import shlex
 from pathlib import Path
 
@@ -19,7 +20,11 @@ from twinfalsify.runs.plan import shard_runtime_minutes  # noqa: E402
 from twinfalsify.runs.registry import EXECUTION_KEYS  # noqa: E402
 from twinfalsify.schema import ContractError  # noqa: E402
 from twinfalsify.figure_ids import figure_ids_error  # noqa: E402
-from twinfalsify.studyconfig import shard_count, study_config_error  # noqa: E402
+from twinfalsify.studyconfig import (
+    data_folder_error,
+    shard_count,
+    study_config_error,
+)  # noqa: E402
 
 
 # Everything that can be checked from the config alone is checked here, at parse time,
@@ -40,6 +45,9 @@ _problem = _config_problem()
 if _problem:
     raise ValueError(f"invalid config: {_problem}")
 validate(config, schema="../schemas/config.schema.yaml")
+# a MIMIC folder that is not there stops the run now, not at the first rule
+if _problem := data_folder_error(config):
+    raise ValueError(f"invalid config: {_problem}")
 
 STUDY = config["study"]
 R = f"results/{STUDY}"
@@ -51,10 +59,13 @@ LOGS = f"{R}/logs"
 
 
 def _code_paths_problem():
-    from twinfalsify.runs.command import code_paths_error
+    from twinfalsify.runs.command import code_paths_error, code_written_error
 
     for name, spec in config["twins"].items():
         if problem := code_paths_error(name, spec, "results"):
+            return problem
+        # a file the twin wrote in an earlier job, still in its fingerprint
+        if problem := code_written_error(name, spec, f"{R}/twins/{name}", SRC):
             return problem
     return None
 
@@ -111,7 +122,7 @@ def code(script, extra=(), leave=()):
 
 
 wildcard_constraints:
-    twin="|".join(TWINS),
+    twin="|".join(re.escape(t) for t in TWINS),
     shard=r"\d+",
 
 

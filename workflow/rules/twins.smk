@@ -30,7 +30,9 @@ rule twin_plan:
 # it reruns only when the twin's shards would. Its priority puts it first when cores are few.
 rule twin_hello:
     output:
-        f"{twin_dir()}/hello.json",
+        hello=f"{twin_dir()}/hello.json",
+        # the probe run's measured seconds: a measurement, kept with the benchmarks
+        timing=f"{R}/benchmarks/twins/{{twin}}/probe.json",
     log:
         f"{LOGS}/twins/{{twin}}/hello.log",
     benchmark:
@@ -54,8 +56,10 @@ rule twin_cost:
     input:
         plan=f"{R}/twin_plan.json",
         hello=f"{twin_dir()}/hello.json",
+        timing=f"{R}/benchmarks/twins/{{twin}}/probe.json",
     output:
-        f"{twin_dir()}/cost.json",
+        # a projection from a measured time: with the benchmarks, not the results
+        f"{R}/benchmarks/twins/{{twin}}/cost.json",
     log:
         f"{LOGS}/twins/{{twin}}/cost.log",
     benchmark:
@@ -77,7 +81,7 @@ rule twin_shard:
         # the shard waits for the hello and the cost line; both rerun only when the twin's
         # spec or code, or the plan, changed, which reruns the shard anyway (not ancient():
         # Snakemake then skips the shard's own params check when the cost job reruns)
-        cost=f"{twin_dir()}/cost.json",
+        cost=f"{R}/benchmarks/twins/{{twin}}/cost.json",
         plan=f"{R}/twin_plan.json",
         context=f"{R}/twin_context.json",
         d=f"{R}/d.parquet",

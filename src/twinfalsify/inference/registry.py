@@ -80,3 +80,21 @@ def floored(name: str, method: Method, p: np.ndarray) -> np.ndarray:
 
     floor = method.keywords.get("p_floor", P_FLOOR) if isinstance(method, partial) else P_FLOOR
     return at_floor(p, floor)
+
+
+def refused(name: str, method: Method, n: np.ndarray, nhat: np.ndarray) -> np.ndarray:
+    """(H,) bool: the method does not test these hypotheses, its p = 1 is by rule, not by
+    evidence: n = 0 or nhat = 0 for every method; for the bootstrap also n or nhat below
+    its ``min_n`` (``inference.bootstrap.bootstrap_test``)."""
+    n, nhat = np.asarray(n), np.asarray(nhat)
+    out = (n == 0) | (nhat == 0)
+    if name != "bootstrap":
+        return out
+    import inspect
+
+    from twinfalsify.inference.bootstrap import bootstrap_test
+
+    default = inspect.signature(bootstrap_test).parameters["min_n"].default
+    min_n = method.keywords.get("min_n", default) if isinstance(method, partial) else default
+    min_n = max(int(min_n), 1)
+    return out | (n < min_n) | (nhat < min_n)

@@ -337,7 +337,9 @@ def adaptive_results(
             "failed_runs": failed_runs, "y_lo": s.y_lo, "y_up": s.y_up,
             "q_lo_hat": s.q_lo_hat, "q_up_hat": s.q_up_hat, "q_twin_hat": s.q_twin_hat,
             "q_obs_hat": s.q_obs_hat, "propensity": s.propensity, "p_value": p,
-            "p_floor": False, "rejected": rej, "correction": correction, "alpha": alpha,
+            # refused: no observational follower, p = 1 by rule (inference.sequential)
+            "p_floor": False, "refused": s.n == 0, "rejected": rej, "correction": correction,
+            "alpha": alpha,
             "stop_batch": dec["stop_batch"].to_numpy(), "runs_used": used,
             "decision": dec[f"decision_{side}"].to_numpy(),
         }))  # fmt: skip

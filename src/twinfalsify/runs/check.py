@@ -295,7 +295,8 @@ class Checker:
             worker.kill()
             return run
         except WorkerDied as exc:
-            run.problem = f"the twin exited during the run ({exc})"
+            what = "closed its stdout" if "closed its stdout" in str(exc) else "exited"
+            run.problem = f"the twin {what} during the run ({exc})"
             return run
         except ProtocolError as exc:
             run.problem = f"broken answer: {exc}"

@@ -15,20 +15,30 @@ folder is refused at parse time, :func:`code_paths_error`). Editing any of them 
 exactly that twin's shards and what follows; restoring
 the same bytes (``git checkout``) reruns nothing, since only contents count, never times.
 Not tracked: files the twin opens without naming them in its command or in ``code:``
-(other modules of its package, its data, the libraries it imports), and programs found on
-PATH (their version is what the twin's hello reports, recorded with its runs).
+(other modules of its package, its data, the libraries it imports), programs found on
+PATH (their version is what the twin's hello reports, recorded with its runs), and the
+paths of the spec's ``code_exclude:`` (files or folders).
+
+Files the twin writes (a log or cache inside a ``code:`` folder, a file named on its
+command line): the rules that run the twin compare the tracked files before and after
+(:func:`watch_code`) and record the paths that changed in
+``twins/<name>/code_written/<job>.json``; when the workflow next starts, such a path still
+tracked stops it in one line naming the path and ``code_exclude``
+(:func:`code_written_error`), instead of rerunning the twin at every start.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import shlex
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -201,8 +211,14 @@ def _files_under(path: Path) -> Iterable[Path]:
                 yield p
 
 
+def _excluded(spec: Mapping[str, Any]) -> list[Path]:
+    raw = spec.get("code_exclude") or []
+    return [Path(p).resolve() for p in ([raw] if isinstance(raw, str) else raw)]
+
+
 def tracked_files(spec: Mapping[str, Any], src: Path | None = None) -> list[Path]:
-    """The files :func:`command_fingerprint` reads, in a fixed order."""
+    """The files :func:`command_fingerprint` reads, in a fixed order (without those under a
+    ``code_exclude:`` path)."""
     cmd = words(spec)
     out: list[Path] = []
     for w in cmd:
@@ -217,6 +233,8 @@ def tracked_files(spec: Mapping[str, Any], src: Path | None = None) -> list[Path
     for c in _code_paths(spec):
         if Path(c).exists():
             out.extend(_files_under(Path(c)))
+    excluded = _excluded(spec)
+    out = [p for p in out if not any(p.resolve().is_relative_to(x) for x in excluded)]
     seen: set[Path] = set()
     return [p for p in out if not (p.resolve() in seen or seen.add(p.resolve()))]
 
@@ -235,3 +253,78 @@ def command_fingerprint(spec: Mapping[str, Any], src: Path | None = None) -> str
                 h.update(chunk)
         h.update(b"\0")
     return h.hexdigest()[:16]
+
+
+def _digests(spec: Mapping[str, Any], src: Path | None) -> dict[str, str]:
+    """{path: SHA-256 of its bytes} of the tracked files, and '' for a path the command
+    names that does not exist (a file the twin may create)."""
+    out: dict[str, str] = {}
+    for p in tracked_files(spec, src):
+        h = hashlib.sha256()
+        try:
+            with p.open("rb") as fh:
+                while chunk := fh.read(_CHUNK):
+                    h.update(chunk)
+        except OSError:
+            continue
+        out[str(p)] = h.hexdigest()
+    excluded = _excluded(spec)
+    for w in words(spec)[1:]:
+        p = Path(w)
+        if (w and w not in out and not w.startswith("-") and not p.exists()
+                and not any(p.resolve().is_relative_to(x) for x in excluded)):
+            out[w] = ""
+    return out
+
+
+@contextmanager
+def watch_code(spec: Mapping[str, Any], src: Path | None, record: Path) -> Iterator[None]:
+    """Around a job that runs the twin (``kind: command`` only): the tracked files the job
+    changed, created or removed are written to ``record`` (JSON list of paths; nothing is
+    written when none changed). Another job of the same twin may write at the same time:
+    what a job sees is what changed while it ran."""
+    if spec.get("kind") != "command":
+        yield
+        return
+    before = _digests(spec, src)
+    yield
+    after = _digests(spec, src)
+    changed = sorted(p for p in set(before) | set(after) if before.get(p) != after.get(p))
+    if changed:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        tmp = record.with_name(record.name + ".tmp")
+        tmp.write_text(json.dumps(changed))
+        tmp.replace(record)
+
+
+def code_written_error(name: str, spec: Mapping[str, Any], twin_folder: str | Path,
+                       src: Path | None = None) -> str | None:
+    """One line when a path the twin wrote in an earlier job (``watch_code`` records under
+    ``<twin_folder>/code_written/``) is still part of its fingerprint, else None: it would
+    change the fingerprint at every start and rerun the twin."""
+    if spec.get("kind") != "command":
+        return None
+    folder = Path(twin_folder) / "code_written"
+    if not folder.is_dir():
+        return None
+    written: set[str] = set()
+    for f in sorted(folder.glob("*.json")):
+        try:
+            written.update(str(p) for p in json.loads(f.read_text()))
+        except (OSError, ValueError, TypeError):
+            continue
+    if not written:
+        return None
+    tracked = {p.resolve() for p in tracked_files(spec, src)}
+    named = {w for w in words(spec)[1:] if w and not w.startswith("-")}
+    excluded = _excluded(spec)
+    still = sorted(p for p in written
+                   if (Path(p).resolve() in tracked or p in named)
+                   and not any(Path(p).resolve().is_relative_to(x) for x in excluded))
+    if not still:
+        return None
+    return (f"twins.{name}: the twin wrote {still[0]!r} while it ran"
+            + (f" (and {len(still) - 1} more)" if len(still) > 1 else "")
+            + ", a file its code fingerprint reads (its command or code:): every start would "
+            f"rerun it; add it (or its folder) to twins.{name}.code_exclude, or have the twin "
+            "write outside its code")

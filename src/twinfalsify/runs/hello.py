@@ -67,11 +67,36 @@ def twin_hello(name: str, spec: dict[str, Any], hours: int = PROBE_HOURS,
             "probe": probe_record(hours, each, status, message)}
 
 
+MEASURED = ("seconds", "seconds_each")  # the probe's timings: never in hello.json
+
+
+def split_timing(hello: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(hello without the probe's measured times, the measurement ``{"seconds": ...,
+    "seconds_each": [...]}``).
+
+    The rule writes the first to ``twins/<twin>/hello.json``, identical from one run to the
+    next, and the second under ``benchmarks/`` with the other measured times."""
+    probe = hello.get("probe")
+    if not probe or "seconds" not in probe:
+        return hello, {"seconds": None}
+    kept = {k: v for k, v in probe.items() if k not in MEASURED}
+    return {**hello, "probe": kept}, {k: probe[k] for k in MEASURED if k in probe}
+
+
+def with_timing(hello: dict[str, Any], timing: dict[str, Any]) -> dict[str, Any]:
+    """The hello with its probe's measured times back (the inverse of
+    :func:`split_timing`), as :func:`seconds_per_hour` and :func:`projected_cost` read it."""
+    probe = hello.get("probe")
+    if not probe or timing.get("seconds") is None:
+        return hello
+    return {**hello, "probe": {**probe, **{k: timing[k] for k in MEASURED if k in timing}}}
+
+
 def seconds_per_hour(hello: dict[str, Any]) -> float | None:
     """Seconds per simulated hour measured by the probe (its median run); None when it did
     not run ok."""
     probe = hello.get("probe") or {}
-    if probe.get("status") != "ok" or not probe.get("hours"):
+    if probe.get("status") != "ok" or not probe.get("hours") or probe.get("seconds") is None:
         return None
     return float(probe["seconds"]) / int(probe["hours"])
 

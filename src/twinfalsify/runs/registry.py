@@ -117,9 +117,10 @@ def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
         from twinfalsify.runs.command import check_command
 
         check_command(name, spec, _SRC)
-    elif spec.get("code"):
-        raise ContractError(f"twins.{name}.code: only kind command takes code (this twin is "
-                            f"kind {kind}; its code is the library's, tracked already)")
+    elif any(spec.get(k) for k in ("code", "code_exclude")):
+        key = next(k for k in ("code", "code_exclude") if spec.get(k))
+        raise ContractError(f"twins.{name}.{key}: only kind command takes {key} (this twin "
+                            f"is kind {kind}; its code is the library's, tracked already)")
 
 
 def make_twin(

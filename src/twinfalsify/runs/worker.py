@@ -222,16 +222,25 @@ class Worker:
         return " | ".join(lines[-5:])
 
     def _died(self) -> WorkerDied:
-        # End of stdout: the worker is finished either way. Kill what is left
-        # of its group (a worker that closed stdout but lives on gets -9; one
-        # that already exited keeps its own exit code), reap it, keep the tail.
+        # End of stdout: the worker is finished either way. A twin that exits closes its
+        # stdout a moment before it is gone: it gets EXIT_DRAIN_S to do so and keeps its own
+        # exit code. One still running then closed its stdout and lives on: the runner kills
+        # it (its -9 is the runner's, not the twin's) and says so. What is left of its group
+        # is killed, it is reaped, the tail kept.
+        deadline = time.monotonic() + EXIT_DRAIN_S
+        while (self.proc.returncode is None and not _leader_exited(self.proc.pid)
+               and time.monotonic() < deadline):
+            time.sleep(0.02)
+        # (without waitid, macOS, the runner cannot tell without reaping: the exit code)
+        alive = (hasattr(os, "waitid") and self.proc.returncode is None
+                 and not _leader_exited(self.proc.pid))
         self._terminate_group()
         code = self.proc.returncode
         tail = self.tail()
         self._close()
-        return WorkerDied(
-            f"worker exited with code {code}" + (f"; stderr tail: {tail}" if tail else "")
-        )
+        what = ("worker closed its stdout but kept running (killed by the runner)" if alive
+                else f"worker exited with code {code}")
+        return WorkerDied(what + (f"; stderr tail: {tail}" if tail else ""))
 
     def _send(self, data: bytes, deadline: float) -> None:
         """Write ``data`` to the twin's stdin by ``deadline`` (a twin that stopped reading
