@@ -1,5 +1,6 @@
 """Rule summary: cohort, split, hypotheses, twin runs, clamps, rejections, untestable."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -15,6 +16,11 @@ from twinfalsify.summary import (  # noqa: E402
 )
 
 SHARED = ("d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan")
+
+
+def _dataset(path: Path) -> dict | None:
+    """The source's dataset record (meds source: written by the trajectories rule)."""
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def main(sm):
@@ -33,6 +39,7 @@ def main(sm):
         read_parquet(sm.input.hypotheses, "hypotheses"),
         twins,
         methods=sm.params.testing["methods"],
+        data=_dataset(Path(sm.input.d0).parent / "cohort" / "dataset.json"),
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)

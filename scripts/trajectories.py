@@ -20,6 +20,10 @@ def main(sm):
         from twinfalsify.sources.table import read_table
 
         traj = read_table(source["table"]["path"])
+    elif source["kind"] == "meds":
+        from twinfalsify.sources.meds.study import extract_for_study as extract_meds
+
+        traj = extract_meds(source["meds"], Path(sm.output[0]).parent)
     else:
         from twinfalsify.sources.mimic_rule import extract_for_study
 

@@ -11,6 +11,8 @@ than copies of them:
 - ``figures.*.outcome``: an outcome under test (``schema.OUTCOMES``);
 - ``source.table``: the table files exist and have the contract's columns
   (``sources.table.check_headers``; their values are checked by the source rule, first);
+- ``source.meds``: the MEDS folder's metadata and shards, the code map and the label table
+  (``sources.meds.study.source_error``; the codes themselves are checked by the source rule);
 - ``twins.<name>``: the spec builds (``runs.registry.check_spec``: features of shift/scale,
   doses of dose_effect, a command for kind command, a synthetic source for oracle/biased).
 """
@@ -65,7 +67,12 @@ def semantic_error(config: Mapping[str, Any]) -> str | None:
 
 def source_error(source: Mapping[str, Any]) -> str | None:
     """A table source without a path, or whose files are missing or lack a contract
-    column, as one line; None otherwise (other kinds: None)."""
+    column; a meds source whose folder, code map or label table breaks a rule
+    (``sources.meds.study.source_error``): as one line; None otherwise (other kinds: None)."""
+    if source.get("kind") == "meds":
+        from twinfalsify.sources.meds.study import source_error as meds_error
+
+        return meds_error(source.get("meds"))
     if source.get("kind") != "table":
         return None
     path = (source.get("table") or {}).get("path")

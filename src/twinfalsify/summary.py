@@ -403,10 +403,12 @@ def study_summary(
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
     methods: Mapping[str, Mapping] | None = None,
+    data: Mapping[str, object] | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
     optionally "clipped": clipped_shares(...)}; methods: ``testing.methods`` (which
-    hypotheses each method refuses, see ``refused``).
+    hypotheses each method refuses, see ``refused``); data: the source's dataset record
+    (the meds source's cohort/dataset.json: dataset, path, licence), shown as "data".
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
     clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind),
@@ -459,7 +461,12 @@ def study_summary(
     def cat(frames, cols):
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=cols)
 
+    tables = {"data": pd.DataFrame({"what": ["dataset", "folder", "licence", "code map"],
+                                    "value": [str(data.get(k) or "not stated") for k in (
+                                        "dataset", "path", "licence", "code_map")]})
+              } if data else {}
     return {
+        **tables,
         "cohort": cohort,
         "hypotheses": hyp,
         "runs": cat(runs_rows, ["twin", "t", "status", "rows"]),
@@ -476,6 +483,7 @@ def study_summary(
 
 
 _TITLES = {
+    "data": "Data and licence",
     "cohort": "Cohort and split",
     "hypotheses": "Hypotheses (two one-sided hypotheses per parameter set)",
     "runs": "Twin runs by hour and status (rows = prefix node x X_0)",
