@@ -167,6 +167,9 @@ def icu_stays(con, cmap: CodeMap, ds: MedsDataset) -> pd.DataFrame:
                max({sex_case}) AS sex_max, min({sex_case}) AS sex_min
         FROM events WHERE code IN ({', '.join(_lit(c) for c in [cmap.birth, *cmap.sex])})
         GROUP BY 1""").df().set_index("subject_id")
+    for col in ("intime", "outtime"):  # one time resolution everywhere (DuckDB gives us)
+        st[col] = pd.to_datetime(st[col]).astype("datetime64[ns]")
+    demo["birth"] = pd.to_datetime(demo["birth"]).astype("datetime64[ns]")
     st = st.sort_values(["subject_id", "intime"], kind="stable").set_index("stay_id")
     birth = demo["birth"].reindex(st["subject_id"]).to_numpy()
     st["age"] = (st["intime"].to_numpy() - birth) / pd.Timedelta(days=365.25)
@@ -228,6 +231,7 @@ def _feature_events(con, cmap: CodeMap, win: pd.DataFrame, cols: set[str]
         FROM e JOIN fmap m ON (m.exact AND e.code = m.key) OR (NOT m.exact AND e.stem = m.key)
         JOIN win w ON e.subject_id = w.subject_id AND e.time >= w.lo AND e.time < w.hi
         """).df()
+    ev["time"] = pd.to_datetime(ev["time"]).astype("datetime64[ns]")
     accepted = {r["code"]: set(r["units"]) for _, r in cmap.features.iterrows()}
     pattern = {r["key"]: r["code"] for _, r in fm.iterrows() if not r["exact"]}
     stem = ev["code"].map(lambda c: split_unit(c)[0])
@@ -247,6 +251,7 @@ def _feature_events(con, cmap: CodeMap, win: pd.DataFrame, cols: set[str]
             JOIN win w ON e.subject_id = w.subject_id AND e.time >= w.lo AND e.time < w.hi
             WHERE {_match('e.code', spec['code'])} AND upper(trim(e.text_value)) IN ({bad})
             """).df()
+        ven["time"] = pd.to_datetime(ven["time"]).astype("datetime64[ns]")
         gas = ev["feature"].isin(spec["features"]).to_numpy()
         hit = gas & pd.MultiIndex.from_frame(ev[["icustay_id", "time"]]).isin(
             pd.MultiIndex.from_frame(ven)) if len(ven) else np.zeros(len(ev), dtype=bool)
@@ -302,6 +307,8 @@ def infusions(con, cmap: CodeMap, win: pd.DataFrame, cols: set[str]) -> pd.DataF
         FROM s JOIN x ON s.subject_id = x.subject_id AND s.item = x.item AND {on}
         JOIN win_in w ON s.subject_id = w.subject_id
         WHERE s.time < w.hi AND x.time > w.lo AND x.time >= s.time""").df()
+    for col in ("starttime", "endtime"):
+        pairs[col] = pd.to_datetime(pairs[col]).astype("datetime64[ns]")
     return pairs
 
 
