@@ -20,7 +20,6 @@ from .cohort import extract_meds
 from .dataset import open_dataset
 from .labels import cohort_labels, label_files, write_labels
 
-
 ENV_VAR = "TWINFALSIFY_MEDS_DIR"
 
 
