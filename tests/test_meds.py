@@ -303,6 +303,23 @@ def test_parse_code_map_rejects_a_map_without_an_action():
         parse_code_map(doc)
 
 
+def test_item_coverage_on_the_real_demo():
+    """Rows per concept the MIMIC-IV map reads on the demo (LAB//220045//bpm: 13,913 heart
+    rates); every feature item of the map is charted; the map reads every item the MIMIC-IV
+    concept code uses that the demo charts; the demo never charts three fluid items and the
+    MIMIC-IV-only phenylephrine items."""
+    from twinfalsify.sources.meds.coverage import coverage
+
+    cov = coverage(DEMO).set_index("concept")
+    assert cov.loc["HR", "rows_read"] == 13913
+    assert cov.loc["Temp_C", "rows_read"] == 3379 + 391
+    assert (cov["rows_unit_rejected"] == 0).all()
+    assert (cov.drop(["fluid", "vasopressor"])["map_items_not_charted"] == "").all()
+    assert (cov["concept_items_not_read"] == "").all()
+    assert cov.loc["vasopressor", "map_items_not_charted"] == "229630, 229631, 229632"
+    assert cov.loc["fluid", "map_items_not_charted"] == "225161, 225941, 228341"
+
+
 @pytest.mark.slow
 def test_demo_study_end_to_end(tmp_path):
     """config/meds-mimic4-demo.yaml through Snakemake on the package's demo: CONSORT, the
@@ -325,6 +342,7 @@ def test_demo_study_end_to_end(tmp_path):
     assert set(labels["stay_id"]) == set(traj["stay_id"]) and len(labels) == 90
     summary = (out / "summary.md").read_text()
     assert "MIMIC-IV 3.1" in summary and "ODbL" in summary
+    assert pd.read_csv(out / "cohort" / "coverage.csv")["rows_read"].iloc[0] == 13913
     meta = json.loads((out / "cohort" / "dataset.json").read_text())
     assert meta["stays"] == 90
     res = pd.read_parquet(out / "twins" / "fitted" / "results.parquet")

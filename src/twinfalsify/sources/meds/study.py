@@ -67,7 +67,8 @@ def fingerprint(cfg: Mapping[str, Any] | None) -> str:
 def extract_for_study(cfg: Mapping[str, Any], out_dir: Path) -> pd.DataFrame:
     """Extract (``cohort.extract_meds`` with the validated config's keys) and write
     cohort/consort.csv, stays.csv, units.csv, missingness.csv, anchors.csv,
-    cohort/labels.parquet (the cohort as a MEDS label table) and cohort/dataset.json."""
+    cohort/labels.parquet (the cohort as a MEDS label table), cohort/dataset.json and, with
+    the preset mimic4, cohort/coverage.csv (``coverage.coverage``)."""
     path = resolve_path(cfg)
     cohort = extract_meds(path, cfg["code_map"], cohort=cfg["cohort"],
                           labels=cfg.get("labels"), label_value=cfg["label_value"],
@@ -83,6 +84,10 @@ def extract_for_study(cfg: Mapping[str, Any], out_dir: Path) -> pd.DataFrame:
     write_csv(cohort.units, out / "units.csv")
     write_csv(cohort.missingness, out / "missingness.csv")
     write_csv(cohort.anchors, out / "anchors.csv")
+    if cfg["code_map"] == "mimic4":  # the MIMIC-IV item map against this dataset
+        from .coverage import coverage
+
+        write_csv(coverage(path), out / "coverage.csv")
     ids = cohort.trajectories["stay_id"].unique()
     write_labels(cohort_labels(cohort.anchors, ids), out / "labels.parquet")
     meta = {"dataset": cohort.dataset, "path": str(path),
