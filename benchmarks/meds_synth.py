@@ -64,7 +64,7 @@ COLUMNS = {"subject_id": "BIGINT", "time": "TIMESTAMP", "code": "VARCHAR",
            "numeric_value": "FLOAT", "text_value": "VARCHAR", "unit": "VARCHAR",
            "hadm_id": "BIGINT", "icustay_id": "BIGINT", "order_id": "BIGINT",
            "statusdescription": "VARCHAR"}
-# MEDS event tables: source table -> what it becomes (rows.json's keys)
+# the MEDS splits; with 10 shards or more, every 9th shard is tuning and every 10th held_out
 SPLITS = ("train", "tuning", "held_out")
 
 
