@@ -110,13 +110,20 @@ def check_built_in(res, scale: float, seed: int) -> dict[str, bool]:
 
 def table(paths: list[Path]) -> str:
     """Markdown scaling table from bench JSON files, with a per-stage projection to full
-    MIMIC-IV size: CPU seconds per MEDS event (least squares through the origin) x the full
-    size's events."""
+    MIMIC-IV size from the runs below full size: CPU seconds per MEDS event (least squares
+    through the origin) x the full size's events; peak memory by a line with intercept. A
+    run at full size (scale 1) is shown as measured, beside the projection."""
     runs = sorted((json.loads(p.read_text()) for p in paths), key=lambda r: r["events"])
-    ev = [r["events"] for r in runs]
-    full = runs[-1]["events"] / runs[-1]["scale"]  # events at scale 1 (the generator's)
-    head = ("| | " + " | ".join(f"scale {r['scale']:g}: {r['events'] / 1e6:.1f} M events"
-                                for r in runs) + f" | projected to {full / 1e6:.0f} M events |")
+    part = [r for r in runs if r["scale"] < 1]
+    ev = [r["events"] for r in part]
+    full = part[-1]["events"] / part[-1]["scale"]  # events at scale 1 (the generator's)
+
+    def name(r):
+        return ("**full size, measured**" if r["scale"] >= 1 else f"scale {r['scale']:g}") \
+            + f": {r['events'] / 1e6:.1f} M events"
+
+    head = ("| | " + " | ".join(name(r) for r in runs)
+            + f" | projected to {full / 1e6:.0f} M events from the scales below 1 |")
     lines = [head, "|---|" + "---:|" * (len(runs) + 1)]
 
     def stage(r, names, key="cpu_s"):
@@ -126,25 +133,25 @@ def table(paths: list[Path]) -> str:
         den = sum(x * x for x in ev)
         return sum(x * y for x, y in zip(ev, ys, strict=True)) / den * full
 
+    def row(label, f, fmt, proj=True):
+        cells = " | ".join(fmt(f(r)) for r in runs)
+        tail = fmt(fit([f(r) for r in part])) if proj else ""
+        lines.append(f"| {label} | {cells} | {tail} |")
+
     for label, names in GROUPS.items():
-        ys = [stage(r, names) for r in runs]
-        lines.append(f"| {label}, CPU s | " + " | ".join(f"{y:.1f}" for y in ys)
-                     + f" | {fit(ys):.0f} |")
-    grouped = [sum(stage(r, names) for names in GROUPS.values()) for r in runs]
-    ys = [r["cpu_s"] - g for r, g in zip(runs, grouped, strict=True)]
-    lines.append("| the rest (criteria, trajectories, audit), CPU s | "
-                 + " | ".join(f"{y:.1f}" for y in ys) + f" | {fit(ys):.0f} |")
-    ys = [r["cpu_s"] for r in runs]
-    lines.append("| **whole extraction, CPU s** | " + " | ".join(f"**{y:.1f}**" for y in ys)
-                 + f" | **{fit(ys):.0f}** |")
+        row(f"{label}, CPU s", lambda r, n=names: stage(r, n), lambda y: f"{y:.1f}")
+    row("the rest (criteria, trajectories, audit), CPU s",
+        lambda r: r["cpu_s"] - sum(stage(r, n) for n in GROUPS.values()), lambda y: f"{y:.1f}")
+    row("**whole extraction, CPU s**", lambda r: r["cpu_s"], lambda y: f"**{y:.1f}**")
     lines.append("| whole extraction, wall s (load average) | " + " | ".join(
         f"{r['wall_s']:.0f} ({r['load_mean']:.1f})" for r in runs) + " | |")
-    ys = [r["peak_rss_mb"] for r in runs]
-    slope, base = np.polyfit(ev, ys, 1) if len(runs) > 1 else (ys[0] / ev[0], 0.0)
+    ys = [r["peak_rss_mb"] for r in part]
+    slope, base = np.polyfit(ev, ys, 1) if len(part) > 1 else (ys[0] / ev[0], 0.0)
     lines.append("| peak resident memory, MB (projection: line with intercept) | " + " | ".join(
         f"{r['peak_rss_mb']:.0f}" for r in runs) + f" | {base + slope * full:.0f} |")
     lines.append("| DuckDB spill, peak MB | " + " | ".join(
         f"{r['temp_peak_mb']:.0f}" for r in runs) + " | |")
+
     def built(r):
         b = r.get("built_in")
         return "not checked" if not b else "as built" if all(b.values()) else "DIFFERS"
