@@ -1,5 +1,6 @@
 """Rule summary: cohort, split, hypotheses, twin runs, clamps, rejections, untestable."""
 
+import json
 import logging
 import sys
 from pathlib import Path
@@ -21,6 +22,11 @@ from twinfalsify.summary import (  # noqa: E402
 SHARED = ("d0", "d", "actions", "bins", "hypotheses", "counts", "follow", "plan")
 
 
+def _dataset(path: Path) -> dict | None:
+    """The source's dataset record (meds source: written by the trajectories rule)."""
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 def main(sm):
     twins = {}
     for name, runs, res in zip(sm.params.twins, sm.input.runs, sm.input.results, strict=True):
@@ -38,6 +44,7 @@ def main(sm):
         twins,
         ties=tie_table(read_parquet(sm.input.d, "D"),
                        ActionBins.from_json(read_json(sm.input.actions)), int(sm.params.seed)),
+        data=_dataset(Path(sm.input.d0).parent / "cohort" / "dataset.json"),
     )
     write_text(summary_markdown(sm.params.study, tables), sm.output.md)
     write_text(summary_html(sm.params.study, tables), sm.output.html)

@@ -22,6 +22,10 @@ def main(sm):
         traj = read_table(source["table"]["path"])
         # before any twin runs: a table in another unit would be blamed on the twin
         check_units(traj, source["table"]["path"])
+    elif source["kind"] == "meds":
+        from twinfalsify.sources.meds.study import extract_for_study as extract_meds
+
+        traj = extract_meds(source["meds"], Path(sm.output[0]).parent)
     else:
         from twinfalsify.sources.mimic_rule import extract_for_study
 

@@ -229,6 +229,8 @@ SOURCE_MODULES: dict[str, tuple[str, ...]] = {
     "mimic4": ("twinfalsify.sources.mimic4", "twinfalsify.sources.mimic3",
                "twinfalsify.sources.mimic_rule", "twinfalsify.sources.checksums"),
     "table": ("twinfalsify.sources.table",),
+    # the meds source reads the MIMIC item tables (its preset) and the MIMIC value rules
+    "meds": ("twinfalsify.sources.meds", "twinfalsify.sources.mimic3"),
 }
 METHOD_MODULES: dict[str, str] = {
     "bootstrap": "twinfalsify.inference.bootstrap",

@@ -13,6 +13,8 @@ than copies of them:
   (``sources.table.check_headers``; their values are checked by the source rule, first);
 - ``study`` and ``twins.<name>`` names: each is one folder name under results/
   (:func:`name_error`: not ``.``/``..`` or hidden, at most ``MAX_NAME`` characters);
+- ``source.meds``: the MEDS folder's metadata and shards, the code map and the label table
+  (``sources.meds.study.source_error``; the codes themselves are checked by the source rule);
 - ``twins.<name>``: the spec builds (``runs.registry.check_spec``: features of shift/scale,
   doses of dose_effect, a command for kind command, a synthetic source for oracle/biased).
 """
@@ -74,7 +76,12 @@ def semantic_error(config: Mapping[str, Any]) -> str | None:
 
 def source_error(source: Mapping[str, Any]) -> str | None:
     """A table source without a path, or whose files are missing or lack a contract
-    column, as one line; None otherwise (other kinds: None)."""
+    column; a meds source whose folder, code map or label table breaks a rule
+    (``sources.meds.study.source_error``): as one line; None otherwise (other kinds: None)."""
+    if source.get("kind") == "meds":
+        from twinfalsify.sources.meds.study import source_error as meds_error
+
+        return meds_error(source.get("meds"))
     if source.get("kind") != "table":
         return None
     path = (source.get("table") or {}).get("path")

@@ -432,10 +432,12 @@ def study_summary(
     twins: Mapping[str, Mapping[str, pd.DataFrame]],
     trajectories_stays: int | None = None,
     ties: pd.DataFrame | None = None,
+    data: Mapping[str, object] | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Tables of the study summary. twins: name -> {"runs": ..., "results": ...,
     optionally "clipped": clipped_shares(...)}; the results' column ``refused`` says which
-    hypotheses each method did not test.
+    hypotheses each method did not test; data: the source's dataset record (the meds
+    source's cohort/dataset.json: dataset, path, licence), shown as "data".
 
     Returns named tables: cohort, hypotheses, runs (status counts per twin and hour),
     clamps (share of X_0 clamped per twin and feature), rejections (per twin, method, kind:
@@ -492,7 +494,12 @@ def study_summary(
     def cat(frames, cols):
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=cols)
 
+    tables = {"data": pd.DataFrame({"what": ["dataset", "folder", "licence", "code map"],
+                                    "value": [str(data.get(k) or "not stated") for k in (
+                                        "dataset", "path", "licence", "code_map")]})
+              } if data else {}
     return {
+        **tables,
         "cohort": cohort,
         "ties": ties if ties is not None else pd.DataFrame(columns=["sample", "t", "records",
                                                                      "tied"]),
@@ -509,6 +516,7 @@ def study_summary(
 
 
 _TITLES = {
+    "data": "Data and licence",
     "cohort": "Cohort and split",
     "ties": "Tied records: share of D's trajectories whose X_0:t, A_1:t another trajectory "
             "shares (the data order keys each copy apart, docs/explanation/statistics.md)",

@@ -311,11 +311,15 @@ _RUNTIME_WARNED = set()
 
 
 def mimic_data():
-    """Resolved MIMIC folder + file fingerprint (mimic3 and mimic4 sources only): a new
-    folder or a changed file reruns the extraction
-    (twinfalsify.sources.mimic_rule.data_params).
+    """Resolved MIMIC folder + file fingerprint (mimic3 and mimic4 sources; meds: its
+    shards, code map and labels): a new folder or a changed file reruns the extraction
+    (twinfalsify.sources.mimic_rule.data_params, twinfalsify.sources.meds.study.fingerprint).
     """
     kind = config["source"]["kind"]
+    if kind == "meds":
+        from twinfalsify.sources.meds.study import fingerprint
+
+        return fingerprint(config["source"]["meds"])
     if kind not in ("mimic3", "mimic4"):
         return ""
     from twinfalsify.sources.mimic_rule import data_params

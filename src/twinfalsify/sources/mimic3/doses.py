@@ -34,16 +34,18 @@ def tonicity_factors() -> pd.Series:
     return pd.Series(t["tonicity_factor"].to_numpy(float), index=t["itemid"].astype("int64"))
 
 
-def norepinephrine_equivalent(events: pd.DataFrame, system: str) -> pd.Series:
+def norepinephrine_equivalent(events: pd.DataFrame, system: str,
+                              rules: pd.DataFrame | None = None) -> pd.Series:
     """Norepinephrine-equivalent rate (ug/kg/min) per event row; NaN when no rule matches.
 
     ``events`` has columns itemid, rate, rateuom and optionally patientweight. Formula:
     rate * factor / weight_divisor, with the first matching row of vasopressors.csv (lowest
     priority number; rateuom '*' matches any unit; min_rate_exclusive: the row needs
     rate > it; patientweight_eq: the row needs that PATIENTWEIGHT, so it never matches
-    events without the column; a row without a factor converts nothing: NaN).
+    events without the column; a row without a factor converts nothing: NaN). ``rules``:
+    rows in vasopressors.csv's columns to use instead (the meds source's code map).
     """
-    rules = data_table("vasopressors.csv")
+    rules = data_table("vasopressors.csv") if rules is None else rules
     rules = rules[rules["system"] == system].sort_values("priority", kind="stable")
     out = pd.Series(np.nan, index=events.index, dtype="float64")
     rate = pd.to_numeric(events["rate"], errors="coerce")
@@ -99,13 +101,15 @@ def _blocks(intime: pd.Series, t_max: int, width: pd.Timedelta = HOUR) -> pd.Dat
     return b
 
 
-def hourly_fluid(intime: pd.Series, mv: pd.DataFrame, cv: pd.DataFrame, t_max: int) -> pd.Series:
+def hourly_fluid(intime: pd.Series, mv: pd.DataFrame, cv: pd.DataFrame, t_max: int,
+                 tonicity: pd.Series | None = None) -> pd.Series:
     """Tonicity-normalised IV fluid (mL) per (icustay_id, t); see the module docstring.
 
     intime: INTIME indexed by icustay_id. mv: icustay_id, itemid, starttime, endtime, amount,
-    rate. cv: icustay_id, itemid, charttime, amount.
+    rate. cv: icustay_id, itemid, charttime, amount. ``tonicity``: itemid -> factor to use
+    instead of fluids.csv's (the meds source's code map).
     """
-    fac = tonicity_factors()
+    fac = tonicity_factors() if tonicity is None else tonicity
     blocks = _blocks(intime, t_max)
     total = pd.Series(0.0, index=pd.MultiIndex.from_frame(blocks[["icustay_id", "t"]]))
     if len(mv):
@@ -129,22 +133,24 @@ def hourly_fluid(intime: pd.Series, mv: pd.DataFrame, cv: pd.DataFrame, t_max: i
 
 
 def hourly_vasopressor(intime: pd.Series, mv: pd.DataFrame, cv: pd.DataFrame, t_max: int,
-                       width: pd.Timedelta = HOUR) -> pd.Series:
+                       width: pd.Timedelta = HOUR, rules: pd.DataFrame | None = None
+                       ) -> pd.Series:
     """Max norepinephrine-equivalent rate (ug/kg/min) per (icustay_id, t); 0 when none.
 
     mv: icustay_id, itemid, starttime, endtime, rate, rateuom (MetaVision).
     cv: icustay_id, itemid, charttime, rate, rateuom (CareVue). ``width``: block length
-    (4 h for the SOFA blocks).
+    (4 h for the SOFA blocks). ``rules``: conversion rows instead of vasopressors.csv's
+    (``norepinephrine_equivalent``).
     """
     blocks = _blocks(intime, t_max, width)
     idx = pd.MultiIndex.from_frame(blocks[["icustay_id", "t"]])
     parts = []
     if len(mv):
-        m = mv.assign(ne=norepinephrine_equivalent(mv, "mv")).merge(blocks, on="icustay_id")
+        m = mv.assign(ne=norepinephrine_equivalent(mv, "mv", rules)).merge(blocks, on="icustay_id")
         m = m[(m["starttime"] < m["t1"]) & (m["endtime"] > m["t0"]) & m["ne"].notna()]
         parts.append(m[["icustay_id", "t", "ne"]])
     if len(cv):
-        c = cv.assign(ne=norepinephrine_equivalent(cv, "cv")).merge(blocks, on="icustay_id")
+        c = cv.assign(ne=norepinephrine_equivalent(cv, "cv", rules)).merge(blocks, on="icustay_id")
         c = c[(c["charttime"] >= c["t0"]) & (c["charttime"] < c["t1"]) & c["ne"].notna()]
         parts.append(c[["icustay_id", "t", "ne"]])
     if not parts:
