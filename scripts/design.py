@@ -18,9 +18,9 @@ def main(sm):
     d = validate_trajectories(read_parquet(sm.input.d, "D"), source=sm.input.d)
     outcomes = tuple(cfg.get("outcomes", OUTCOMES))
     actions, states, hyps, report = design.design_on_d0(
-        d0, outcomes=outcomes, quantiles=tuple(cfg.get("quantiles", (0.2, 0.8))),
-        min_support=int(cfg.get("min_support", 10)),
-        kinds=tuple(cfg.get("kinds", ("causal", "manski"))),
+        d0, outcomes=outcomes, quantiles=tuple(cfg["quantiles"]),
+        min_support=int(cfg["min_support"]),
+        kinds=tuple(cfg["kinds"]),
         horizon=cfg.get("horizon"), sequences=cfg.get("sequences"),
     )
     log.info("hypotheses: %s", hyps.groupby("kind").size().to_dict())

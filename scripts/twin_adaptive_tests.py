@@ -37,8 +37,8 @@ def main(sm):
     testing = sm.params.testing
     results = adaptive_results(
         hyps, obs, nodes, StateBins.from_json(read_json(sm.input.bins)), decisions,
-        alpha=float(testing.get("alpha", 0.05)), correction=testing.get("correction", "holm"),
-        failed_runs=str(testing.get("failed_runs", "conservative")),
+        alpha=float(testing["alpha"]), correction=testing["correction"],
+        failed_runs=str(testing["failed_runs"]),
     )
     hours_a = sum(s["twin_hours_adaptive"] for s in summaries)
     hours_f = sum(s["twin_hours_fixed"] for s in summaries)

@@ -20,8 +20,8 @@ def main(sm):
     plan = plan_twin_runs(
         hyps,
         ids,
-        runs.get("runs_per_sequence", 5000),
-        int(runs.get("n_shards", 4)),
+        runs["runs_per_sequence"],
+        int(runs["n_shards"]),
         int(sm.params.seed),
         x0=x0_frame(d, [int(s) for s in ids])[list(FEATURES)].to_numpy(float),
         x0_stays=runs.get("x0_stays"),

@@ -2,7 +2,7 @@
 # Each shard simulates batch by batch and stops decided hypotheses; tests_adaptive merges
 # the shards and corrects the anytime-valid p-values. In adaptive mode its output is the
 # twin's results.parquet (ruleorder below), so tables and figures follow unchanged.
-ADAPTIVE = config["twin_runs"].get("mode", "fixed") == "adaptive"
+ADAPTIVE = config["twin_runs"]["mode"] == "adaptive"
 ADAPTIVE_OUT = twin_dir() if ADAPTIVE else f"{twin_dir()}/adaptive"
 
 

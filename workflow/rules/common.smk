@@ -144,7 +144,7 @@ def twin_dir(twin="{twin}"):
 def all_outputs():
     # adaptive mode simulates only the runs that decide something: outputs that need every
     # twin run (bounds over time, histograms, sensitivity, the summary) are not built then
-    adaptive = config["twin_runs"].get("mode", "fixed") == "adaptive"
+    adaptive = config["twin_runs"]["mode"] == "adaptive"
     out = [
         f"{R}/tables/action_space.csv",
         f"{R}/design/report.csv",

@@ -49,9 +49,9 @@ rule figure_longitudinal:
         mem_mb=4000,
         runtime=10,
     params:
-        figures=canon(config.get("figures", {})),
+        figures=canon(config["figures"]),
         testing=canon(config["testing"]),
-        quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
+        quantiles=canon(config["design"]["quantiles"]),
         code=code("figure_longitudinal"),
     script:
         "../../scripts/figure_longitudinal.py"
@@ -78,7 +78,7 @@ rule figure_histograms:
         mem_mb=4000,
         runtime=10,
     params:
-        figures=canon(config.get("figures", {})),
+        figures=canon(config["figures"]),
         testing=canon(config["testing"]),
         code=code("figure_histograms"),
     script:
@@ -159,7 +159,7 @@ rule figure_sensitivity:
         mem_mb=6000,
         runtime=30,
     params:
-        figures=canon(config.get("figures", {})),
+        figures=canon(config["figures"]),
         testing=canon(config["testing"]),
         seed=config["seed"],
         code=code("figure_sensitivity"),
@@ -188,7 +188,7 @@ rule figure_confounding:
         mem_mb=4000,
         runtime=10,
     params:
-        figures=canon(config.get("figures", {})),
+        figures=canon(config["figures"]),
         source=canon(config["source"]),
         seed=config["seed"],
         code=code("figure_confounding"),

@@ -24,9 +24,9 @@ rule explain_rejections:
         mem_mb=4000,
         runtime=10,
     params:
-        figures=canon(config.get("figures", {})),
+        figures=canon(config["figures"]),
         testing=canon(config["testing"]),
-        quantiles=canon(config["design"].get("quantiles", [0.2, 0.8])),
+        quantiles=canon(config["design"]["quantiles"]),
         code=code("explain_rejections"),
     script:
         "../../scripts/explain_rejections.py"

@@ -38,7 +38,7 @@ rule split:
         runtime=10,
     params:
         d0_fraction=config["split"]["d0_fraction"],
-        split_by=config["split"].get("by", "subject"),
+        split_by=config["split"]["by"],
         seed=config["seed"],
         code=code("split"),
     script:
