@@ -143,3 +143,23 @@ def test_cached_import_statements_are_every_import_of_every_file(tmp_path, monke
     cache.get(edited)
     cache.save()  # cannot write: parsed again next time, no error
     assert cache.dirty
+
+
+def test_the_report_layer_reads_stored_runs_without_the_executor():
+    """What reports on a study (summary, figures, explain, diff) and the one path to its
+    p-values (twin_tests) read stored twin runs through ``stored_runs``, never by importing
+    the executor that made them (``runs``)."""
+    g = graph()
+    readers = [m for m in g if m.split(".")[1:2] and m.split(".")[1] in
+               ("summary", "figures", "explain", "diff", "twin_tests")]
+    assert readers
+    seen = set()
+    todo = list(readers)
+    while todo:  # everything they import, transitively
+        m = todo.pop()
+        for dep in g.get(m, ()):
+            if dep not in seen:
+                seen.add(dep)
+                todo.append(dep)
+    executor = sorted(m for m in seen if m.startswith("twinfalsify.runs"))
+    assert executor == [], executor
