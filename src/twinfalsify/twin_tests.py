@@ -21,7 +21,7 @@ import pandas as pd
 
 from twinfalsify import bounds
 from twinfalsify.design import StateBins
-from twinfalsify.falsify import make_methods, run_tests
+from twinfalsify.falsify import RESULT_COLUMNS, make_methods, run_tests
 from twinfalsify.inference.order import hypothesis_keys
 from twinfalsify.inference.samples import HypothesisSamples, ObservationalSide
 from twinfalsify.inference.sensitivity import sensitivity_sweep
@@ -29,6 +29,8 @@ from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import ContractError, TwinNodes
 from twinfalsify.stored_runs import TwinPlan, load_nodes, x0_frame
 
+# the columns of a study's results.parquet: run_tests' and the order seed's
+STUDY_RESULT_COLUMNS = (*RESULT_COLUMNS, "order_seed", "seed_fragile")
 # tests whose p-values depend on a seed (the betting test's order, the bootstrap's resamples)
 SEEDED_METHODS = ("betting", "bootstrap")
 # the files of a study a twin's tests read (keys of the rules' ``input``)

@@ -104,14 +104,17 @@ def swapped(medians: dict[str, float], who: str = "twin") -> list[str]:
 
 def drifts(feature: str, by_hour: list[float], who: str = "twin") -> str:
     """'' unless the hour-1 median (``by_hour[0]``) is inside the feature's typical range
-    and a later hour's is outside it: then the message naming the first such hour."""
+    and a later hour's is outside it, at least half the range's width away from hour 1:
+    then the message naming the first such hour. The distance keeps a twin whose patients
+    simply run high (a tachycardia drifting from 127 to 156 /min) from being called a
+    drift; a state that grows hour by hour soon covers it."""
     if feature not in TYPICAL or not by_hour or not math.isfinite(by_hour[0]):
         return ""
     lo, hi = TYPICAL[feature]
     if not lo <= by_hour[0] <= hi:
         return ""
     for h, v in enumerate(by_hour[1:], start=2):
-        if math.isfinite(v) and not lo <= v <= hi:
+        if math.isfinite(v) and not lo <= v <= hi and abs(v - by_hour[0]) > (hi - lo) / 2:
             unit = FEATURE_BY_NAME[feature].unit
             return (f"{feature}: {who} median {by_hour[0]:.3g} at hour 1, {v:.3g} at hour "
                     f"{h} (typical {lo:g}-{hi:g} {unit}): drifts after hour 1?")

