@@ -86,8 +86,8 @@ def test_tutorial_commands_run_as_written(tmp_path):
     assert f"{hit.p_value:.1e}" == "9.4e-05"
     assert "betting, causal, paCO2 at hour 1,\np = 9.4e-5" in page
     assert not (r / "figures" / "confounding.png").exists()  # the synthetic world only
-    # the deliberately wrong twin (heart rate +15 /min per hour) passes the conformance check
-    # but is rejected, and only on heart rate
+    # the deliberately wrong twin (heart rate +15 /min per hour): the conformance check names
+    # its drift, and the study rejects it, only on heart rate
     wrong = pd.read_parquet(work / "results" / "table-wrong" / "twins" / "mine" /
                             "results.parquet")
     rejected = wrong[wrong["rejected"]]
@@ -96,5 +96,9 @@ def test_tutorial_commands_run_as_written(tmp_path):
     assert (work / "results" / "table-wrong" / "twins" / "mine" / "figures" /
             "pvalues.png").stat().st_size > 10_000
     assert not (work / "results" / "table-wrong" / "twins" / "fitted").exists()
-    assert "all checks passed" in outputs[[i for i, c in enumerate(commands(PAGE.read_text()))
-                                           if "--config wrong.yaml" in c][0]]
+    check = outputs[[i for i, c in enumerate(commands(PAGE.read_text()))
+                     if "--config wrong.yaml" in c][0]]
+    drift = [ln for ln in check.splitlines() if ln.startswith("drift")]
+    assert drift and "FAIL" in drift[0] and "HR:" in drift[0] and "a check failed" in check
+    assert drift[0].split("FAIL", 1)[1].strip().split(" (typical")[0] in " ".join(
+        page.split())

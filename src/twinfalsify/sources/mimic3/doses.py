@@ -59,7 +59,7 @@ def norepinephrine_equivalent(events: pd.DataFrame, system: str,
             m &= uom == r["rateuom"]
         if pd.notna(r["min_rate_exclusive"]):
             m &= rate > float(r["min_rate_exclusive"])
-        if pd.notna(r["patientweight_eq"]):
+        if pd.notna(r.get("patientweight_eq")):  # column absent (a meds code map): none
             w = (pd.to_numeric(events["patientweight"], errors="coerce")
                  if "patientweight" in events else pd.Series(np.nan, index=events.index))
             m &= w == float(r["patientweight_eq"])
