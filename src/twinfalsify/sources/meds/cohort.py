@@ -27,6 +27,7 @@ import pandas as pd
 
 from twinfalsify import schema
 from twinfalsify.schema import ContractError
+from twinfalsify.sources.consort import Consort
 from twinfalsify.sources.mimic3 import doses, hourly
 from twinfalsify.sources.mimic3.tables import data_table
 
@@ -51,20 +52,6 @@ class MedsCohort:
     units: pd.DataFrame  # the unit screen: code, unit, feature, n_rows, read
     anchors: pd.DataFrame  # stay_id, subject_id, intime, t0
     dataset: str  # the dataset's name, version and ETL (metadata/dataset.json)
-
-
-class _Consort:
-    def __init__(self) -> None:
-        self.rows: list[dict] = []
-
-    def add(self, step: str, description: str, ids) -> None:
-        n = len(ids)
-        prev = self.rows[-1]["n_stays"] if self.rows else n
-        self.rows.append({"step": step, "description": description, "n_stays": n,
-                          "n_excluded": prev - n})
-
-    def frame(self) -> pd.DataFrame:
-        return pd.DataFrame(self.rows, columns=["step", "description", "n_stays", "n_excluded"])
 
 
 def _lit(s: str) -> str:
@@ -353,7 +340,7 @@ def _extract(con, ds: MedsDataset, cmap: CodeMap, cohort: str, labels, label_val
     allst = icu_stays(con, cmap, ds)
     ids_all = allst.index
     crit = pd.DataFrame(index=ids_all)
-    c = _Consort()
+    c = Consort()
     c.add("icu_stays", f"ICU stays ({cmap.stays['admission']} events) in {ds.label}", ids_all)
     t0_all, desc = _anchor(con, allst, cohort, labels, label_value)
     crit["cohort"] = ids_all.isin(t0_all.index)

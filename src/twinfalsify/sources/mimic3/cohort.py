@@ -45,6 +45,7 @@ import pandas as pd
 
 from twinfalsify import schema
 from twinfalsify.schema import ContractError
+from twinfalsify.sources.consort import Consort
 
 from . import doses, hourly
 from .options import Mimic3Options
@@ -72,20 +73,6 @@ class Mimic3Cohort:
     imputed: pd.DataFrame | None = None  # stay_id, t, weight + labs: True = imputed cell
     stays: pd.DataFrame | None = None  # per ICU stay: onset, SOFA, every criterion (_audit)
     options: dict | None = None  # the switches used (options.Mimic3Options)
-
-
-class _Consort:
-    def __init__(self) -> None:
-        self.rows: list[dict] = []
-
-    def add(self, step: str, description: str, ids) -> None:
-        n = len(ids)
-        prev = self.rows[-1]["n_stays"] if self.rows else n
-        self.rows.append({"step": step, "description": description, "n_stays": n,
-                          "n_excluded": prev - n})
-
-    def frame(self) -> pd.DataFrame:
-        return pd.DataFrame(self.rows, columns=["step", "description", "n_stays", "n_excluded"])
 
 
 def _ts(col: str) -> str:
@@ -1196,10 +1183,10 @@ def _stays_per_patient(allst: pd.DataFrame, crit: pd.DataFrame, opts: Mimic3Opti
 
 
 def _consort(crit: pd.DataFrame, t_max: int, anchor_desc: str, w_desc: str, spp_desc: str
-             ) -> tuple[_Consort, pd.Index]:
+             ) -> tuple[Consort, pd.Index]:
     """The CONSORT chain up to ``stays_per_patient``, in the order of ``STEPS``; the stays
     left."""
-    c = _Consort()
+    c = Consort()
     desc = {
         "all_icu_stays": "ICU stays in ICUSTAYS",
         "adult": "age >= 18 at ICU admission",
