@@ -92,14 +92,22 @@ def study_results(hyps: pd.DataFrame, samples: HypothesisSamples, n_failed: np.n
     return res
 
 
+def order_seeded(samples: HypothesisSamples, seed: int, order_seed: int | None
+                 ) -> tuple[HypothesisSamples, int]:
+    """(samples, methods' seed) under an order seed: the hypotheses keyed by it and the
+    seeded methods seeded by it (None: the study's data order and seed)."""
+    if order_seed is None:
+        return samples, int(seed)
+    return (replace(samples, keys=hypothesis_keys(len(samples), int(order_seed))),
+            int(order_seed))
+
+
 def _results(hyps, samples, n_failed, testing, seed, order_seed) -> pd.DataFrame:
     """run_tests under an order seed (None: the study's order and seed)."""
-    if order_seed is not None:
-        samples = replace(samples, keys=hypothesis_keys(len(samples), int(order_seed)))
-        seed = int(order_seed)
+    samples, seed = order_seeded(samples, seed, order_seed)
     return run_tests(
         hyps, samples, n_failed,
-        make_methods(testing["methods"], int(seed), alpha=float(testing["alpha"])),
+        make_methods(testing["methods"], seed, alpha=float(testing["alpha"])),
         alpha=float(testing["alpha"]), correction=testing["correction"],
         failed_runs=testing["failed_runs"],
     )  # fmt: skip
@@ -151,11 +159,8 @@ def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: li
     """The sensitivity sweep (``inference.sensitivity``) of these tests: at Delta = 0 exactly
     the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome."""
     alpha = float(testing["alpha"])
-    order_seed = testing["order_seed"]
-    methods = make_methods(testing["methods"], int(seed if order_seed is None else order_seed),
-                           alpha=alpha)
-    samples = tt.samples if order_seed is None else replace(
-        tt.samples, keys=hypothesis_keys(len(tt.samples), int(order_seed)))
+    samples, seed = order_seeded(tt.samples, seed, testing["order_seed"])
+    methods = make_methods(testing["methods"], seed, alpha=alpha)
     t0 = time.perf_counter()
     if progress is not None:
         progress(f"sensitivity sweep: {len(deltas)} Delta values x {len(methods)} methods "
