@@ -155,9 +155,13 @@ def load_twin_tests(paths: Mapping[str, str | Path]) -> TwinTests:
 
 
 def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: list[float],
-                progress=None) -> pd.DataFrame:
+                progress=None, results: pd.DataFrame | None = None) -> pd.DataFrame:
     """The sensitivity sweep (``inference.sensitivity``) of these tests: at Delta = 0 exactly
-    the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome."""
+    the decisions of :meth:`TwinTests.results`; counted per family (kind) and outcome.
+
+    ``results``: the tests' results table for the same ``testing`` (the study's
+    results.parquet); its p-values are the sweep's at Delta = 0 instead of testing again.
+    """
     alpha = float(testing["alpha"])
     samples, seed = order_seeded(tt.samples, seed, testing["order_seed"])
     methods = make_methods(testing["methods"], seed, alpha=alpha)
@@ -169,8 +173,28 @@ def sensitivity(tt: TwinTests, testing: Mapping[str, Any], seed: int, deltas: li
         samples, deltas, methods, alpha, testing["correction"],
         group=tt.hyps["outcome"].to_numpy(), n_failed=tt.n_failed,
         failed_runs=testing["failed_runs"], family=tt.hyps["kind"].to_numpy(),
-        progress=progress,
+        progress=progress, at_zero=None if results is None else stored_pvalues(
+            results, tt.hyps["hyp_id"].to_numpy(), list(methods)),
     )  # fmt: skip
     if progress is not None:
         progress(f"sensitivity sweep done in {time.perf_counter() - t0:.1f} s")
     return table.rename(columns={"family": "kind"})
+
+
+def stored_pvalues(results: pd.DataFrame, hyp_ids: np.ndarray, methods: list[str]
+                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per method, (p_lo, p_up) of a results table in the order of ``hyp_ids``; one error
+    when a (hypothesis, side, method) is missing or listed twice."""
+    p = results.set_index(["method", "side", "hyp_id"])["p_value"]
+    if not p.index.is_unique:
+        raise ContractError("results: a (method, side, hyp_id) is listed twice")
+    out = {}
+    for name in methods:
+        try:
+            out[name] = tuple(p.loc[(name, side)].reindex(hyp_ids).to_numpy(float)
+                              for side in ("lo", "up"))
+        except KeyError:
+            raise ContractError(f"results: no p-values of method {name!r}") from None
+        if any(np.isnan(v).any() for v in out[name]):
+            raise ContractError(f"results: method {name!r} misses some hypotheses' p-values")
+    return out

@@ -41,6 +41,7 @@ rule observational_side:
         f"{LOGS}/observational_side.log",
     benchmark:
         f"{R}/benchmarks/observational_side.tsv"
+    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

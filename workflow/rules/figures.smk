@@ -153,6 +153,7 @@ rule figure_sensitivity:
         f"{LOGS}/twins/{{twin}}/figure_sensitivity.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/figure_sensitivity.tsv"
+    priority: 30
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

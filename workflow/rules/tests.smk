@@ -13,6 +13,7 @@ rule tests:
         f"{LOGS}/twins/{{twin}}/tests.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/tests.tsv"
+    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

@@ -64,6 +64,7 @@ rule twin_cost:
         f"{LOGS}/twins/{{twin}}/cost.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/cost.tsv"
+    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     resources:
@@ -94,6 +95,7 @@ rule twin_shard:
         f"{R}/benchmarks/twins/{{twin}}/shard_{{shard}}.tsv"
     group:
         "twin_shards"
+    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     # twin processes of a protocol/command twin (workers) = cores the job uses
@@ -124,6 +126,7 @@ rule twin_runs:
         f"{LOGS}/twins/{{twin}}/runs.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/runs.tsv"
+    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     resources:

@@ -223,6 +223,8 @@ def _order_keys(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: int
     perm = cache["perms"].get(key)
     if perm is None:
         perm = _hashed_order(sizes, keys, copy, seed, salt)
+        if len(perm) < 2**31:  # kept as int32: half the memory, the same indices
+            perm = perm.astype(np.int32)
         if cache["bytes"] + perm.nbytes <= cache["max"]:
             perm.setflags(write=False)
             cache["perms"][key] = perm

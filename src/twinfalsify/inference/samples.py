@@ -31,8 +31,13 @@ class Ragged:
     def from_grouped(cls, ids: np.ndarray, values: np.ndarray, order: np.ndarray) -> Ragged:
         """Long (id, value) pairs -> one group per id in ``order`` (ids absent -> empty)."""
         ids, values, order = np.asarray(ids), np.asarray(values, float), np.asarray(order)
-        pos = {int(h): i for i, h in enumerate(order.tolist())}
-        gi = np.array([pos[int(h)] for h in ids.tolist()], dtype=np.int64)
+        by_id = np.argsort(order, kind="stable")
+        at = np.searchsorted(order[by_id], ids)
+        found = at < len(order)
+        found[found] = order[by_id[at[found]]] == ids[found]
+        if not found.all():
+            raise KeyError(f"ids not in order: {np.unique(ids[~found])[:5].tolist()}")
+        gi = by_id[at].astype(np.int64)
         sort = np.argsort(gi, kind="stable")
         sizes = np.bincount(gi, minlength=len(order))
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -60,7 +65,11 @@ class Ragged:
     def take(self, index: np.ndarray) -> Ragged:
         """The groups listed in ``index``, in that order."""
         index = np.asarray(index, dtype=np.int64)
-        return Ragged.from_groups([self.group(int(h)) for h in index])
+        sizes = self.sizes[index]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        # every element of the listed groups, group after group
+        src = np.repeat(self.offsets[index] - offsets[:-1], sizes) + np.arange(offsets[-1])
+        return Ragged(values=self.values[src].astype(np.float64, copy=False), offsets=offsets)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,9 @@ widening; the sweep refuses ranges that become empty.
 
 Speed: the betting test's data order depends on the samples' sizes and keys only, never on
 [y_lo, y_up], so the sweep computes it once and reuses it at every widening
-(``betting.order_cache``); every p-value is the one a separate call gives, bit for bit.
+(``betting.order_cache``); every p-value is the one a separate call gives, bit for bit. The
+main analysis' own p-values can be given for :math:`\Delta = 0` (``at_zero``), which are
+then not computed again.
 
 Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
 """
@@ -54,16 +56,20 @@ def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
 def sweep_pvalues(
     method: Method, samples: HypothesisSamples, n_failed: np.ndarray, deltas: Sequence[float],
     failed_runs: str = "conservative", progress: Callable[[int, float], None] | None = None,
+    at_zero: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening, each
-    the main analysis' own call on the widened samples (Delta = 0: the main analysis).
-    ``progress(j, seconds)`` is called after widening j."""
+    the main analysis' own call on the widened samples (Delta = 0: the main analysis; its
+    p-values ``at_zero`` when given). ``progress(j, seconds)`` is called after widening j."""
     f = np.asarray(n_failed, np.int64)
     out = []
     with order_cache():
         for j, d in enumerate(deltas):
             t0 = time.perf_counter()
-            out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs))
+            if float(d) == 0.0 and at_zero is not None:
+                out.append(tuple(np.asarray(p, float) for p in at_zero))
+            else:
+                out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs))
             if progress is not None:
                 progress(j, time.perf_counter() - t0)
     return np.array([o[0] for o in out]), np.array([o[1] for o in out])
@@ -81,6 +87,7 @@ def sensitivity_sweep(
     failed_runs: str = "conservative",
     family: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
+    at_zero: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> pd.DataFrame:
     """Long table (delta, method, family, group, n_hypotheses, n_rejected), both sides counted.
 
@@ -88,7 +95,8 @@ def sensitivity_sweep(
     family "all"); the correction runs over both sides of every parameter set of a family
     at each (delta, method), as ``falsify.run_tests`` does. ``group`` labels each
     parameter set for counting (default "all"). ``n_failed``/``failed_runs``: the failed
-    twin runs and their handling, as in the main analysis.
+    twin runs and their handling, as in the main analysis. ``at_zero``: per method, the main
+    analysis' (p_lo, p_up), used at Delta = 0 instead of testing again.
     """
     h = len(samples)
     labels = np.full(h, "all", dtype=object) if group is None else np.asarray(group, dtype=object)
@@ -109,7 +117,10 @@ def sensitivity_sweep(
                 progress(f"{name}: Delta = {deltas[j]:g} ({j + 1}/{len(deltas)}) in "
                          f"{seconds:.1f} s")
 
-        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, step)
+        known = None if at_zero is None else at_zero.get(name)
+        if known is not None and any(np.shape(p) != (h,) for p in known):
+            raise ValueError(f"sensitivity: at_zero[{name!r}] does not have {h} p-values a side")
+        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, step, known)
         for j, delta in enumerate(deltas):
             rej = correct_within(np.concatenate([p_lo[j], p_up[j]]), np.concatenate([fam, fam]),
                                  alpha, correction)
