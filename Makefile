@@ -42,7 +42,7 @@ report: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src scripts tests benchmarks
-	$(BIN)/snakefmt --check Snakefile workflow/rules
+	$(BIN)/snakefmt --check Snakefile workflow/Snakefile workflow/rules
 	$(BIN)/snakemake --lint --cores 1
 
 ## Build the documentation site into site/ (strict: a broken link fails).
