@@ -5,6 +5,7 @@ from pathlib import Path
 
 import sys
 
+from snakemake.sourcecache import LocalSourceFile
 from snakemake.utils import validate
 
 # The workflow's own sources, found relative to this file: in a checkout, and when the
@@ -12,8 +13,13 @@ from snakemake.utils import validate
 # the deploying folder). A checkout's library (../../src) comes first; a workflow deployed
 # from git uses the twinfalsify installed beside Snakemake, of the workflow's own version.
 SCHEMA = str(workflow.source_path("../schemas/config.schema.yaml"))
-_checkout_src = Path(str(workflow.current_basedir)).parents[1] / "src"
-if (_checkout_src / "twinfalsify").is_dir():
+_here = workflow.current_basedir
+_checkout_src = (
+    Path(_here.get_path_or_uri(secret_free=True)).parents[1] / "src"
+    if isinstance(_here, LocalSourceFile)
+    else None
+)
+if _checkout_src is not None and (_checkout_src / "twinfalsify").is_dir():
     sys.path.insert(0, str(_checkout_src))
 else:
     _init = Path(workflow.source_path("../../src/twinfalsify/__init__.py")).read_text()
