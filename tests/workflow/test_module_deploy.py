@@ -126,4 +126,4 @@ def test_a_deployed_workflow_refuses_a_library_of_another_version(tmp_path):
     run = _snakemake(folder, "-n")
     assert run.returncode != 0
     assert (f"this workflow is twinfalsify 0.0.1 but the installed library is "
-            f"{twinfalsify.__version__}") in run.stderr
+            f"{twinfalsify.__version__}") in run.stdout + run.stderr
