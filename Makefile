@@ -8,7 +8,7 @@ CONFIG ?= config/config.yaml
 STUDY = $(shell sed -n 's/^study: *\([A-Za-z0-9._-]*\).*/\1/p' $(CONFIG))
 STAMP := $(VENV)/.installed
 
-.PHONY: setup reproduce test test-fast lint report docs config-reference readme-table clean
+.PHONY: setup reproduce test test-fast lint report docs config-reference readme-table release clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -42,7 +42,7 @@ report: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src scripts tests benchmarks
-	$(BIN)/snakefmt --check Snakefile workflow/rules
+	$(BIN)/snakefmt --check Snakefile workflow/Snakefile workflow/rules
 	$(BIN)/snakemake --lint --cores 1
 
 ## Build the documentation site into site/ (strict: a broken link fails).
@@ -56,6 +56,11 @@ config-reference: $(STAMP)
 ## Write the README's rejection table from the default study's results (after make reproduce).
 readme-table: $(STAMP)
 	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY) --config $(CONFIG) --readme README.md
+
+## Tag a release: the version (src/twinfalsify/__init__.py), CHANGELOG.md's section for it and
+## CITATION.cff's version and date must agree, and the tree be clean (docs/how-to/deploy.md).
+release: $(STAMP)
+	$(BIN)/python -m twinfalsify.release --tag
 
 clean:
 	rm -rf results .snakemake

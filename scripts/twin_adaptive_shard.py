@@ -11,7 +11,11 @@ from twinfalsify.io import log, read_json, read_parquet, run_rule, write_json, w
 from twinfalsify.runs.adaptive import budget_warning, run_adaptive_shard  # noqa: E402
 from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, x0_frame  # noqa: E402
-from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
+from twinfalsify.runs.registry import (  # noqa: E402
+    LIBRARY_ROOT,
+    make_twin,
+    with_execution_keys,
+)
 
 
 class _Log:
@@ -38,7 +42,7 @@ def main(sm):
     # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
     written = (Path(sm.output.runs).parents[2] / "code_written"
                / f"adaptive_shard_{sm.wildcards.shard}.json")
-    with watch_code(spec, Path(sm.scriptdir).parent / "src", written):
+    with watch_code(spec, LIBRARY_ROOT, written):
         rows, decisions, summary = _run(sm, twin, plan, x0, hyps, obs, runs_cfg, testing)
     log.info("shard %s: %s", sm.wildcards.shard, summary)
     warning = budget_warning(summary)

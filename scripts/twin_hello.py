@@ -8,15 +8,15 @@ sys.path.insert(0, str(Path(snakemake.scriptdir).parent / "src"))  # noqa: F821 
 from twinfalsify.io import log, run_rule, write_json  # noqa: E402
 from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.hello import split_timing, twin_hello  # noqa: E402
-from twinfalsify.runs.registry import with_execution_keys  # noqa: E402
+from twinfalsify.runs.registry import LIBRARY_ROOT, with_execution_keys  # noqa: E402
 
 
 def main(sm):
     name = sm.wildcards.twin
     spec = with_execution_keys(dict(sm.params.spec), sm.config["twins"][name])
-    src = Path(sm.scriptdir).parent / "src"
     # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
-    with watch_code(spec, src, Path(sm.output.hello).parent / "code_written" / "hello.json"):
+    written = Path(sm.output.hello).parent / "code_written" / "hello.json"
+    with watch_code(spec, LIBRARY_ROOT, written):
         hello = twin_hello(name, spec)
     log.info("twin %s: %s; probe run %s", name, hello.get("hello") or hello["checked"],
              hello["probe"])

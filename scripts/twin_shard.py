@@ -9,7 +9,11 @@ from twinfalsify.design import ActionBins  # noqa: E402
 from twinfalsify.io import log, read_json, read_parquet, run_rule, write_parquet  # noqa: E402
 from twinfalsify.runs.command import watch_code  # noqa: E402
 from twinfalsify.runs.plan import TwinPlan, restart_warning, run_shard, x0_frame  # noqa: E402
-from twinfalsify.runs.registry import make_twin, with_execution_keys  # noqa: E402
+from twinfalsify.runs.registry import (  # noqa: E402
+    LIBRARY_ROOT,
+    make_twin,
+    with_execution_keys,
+)
 
 
 def main(sm):
@@ -25,7 +29,7 @@ def main(sm):
     shard = int(sm.wildcards.shard)
     # files the twin writes that its fingerprint reads: recorded (runs.command.watch_code)
     written = Path(sm.output[0]).parents[1] / "code_written" / f"shard_{shard}.json"
-    with watch_code(spec, Path(sm.scriptdir).parent / "src", written):
+    with watch_code(spec, LIBRARY_ROOT, written):
         runs = run_shard(twin, plan, shard, x0, ActionBins.from_json(read_json(sm.input.actions)))
     log.info(
         "shard %s: %d node rows, status %s",

@@ -271,3 +271,22 @@ def code_scope(config: dict, all_methods: bool = False) -> tuple[list[str], list
             continue
         leave.append(mod)
     return used, leave
+
+
+#: the packages whose versions a study's summary lists (its "Software" table)
+SOFTWARE = ("twinfalsify", "snakemake", "numpy", "pandas", "scipy", "pyarrow", "duckdb",
+            "matplotlib", "seaborn")
+
+
+def software_versions() -> list[tuple[str, str]]:
+    """(name, version) of Python and of each package of :data:`SOFTWARE` in this process's
+    environment ("not installed" for one that is missing)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = [("python", sys.version.split()[0])]
+    for name in SOFTWARE:
+        try:
+            out.append((name, version(name)))
+        except PackageNotFoundError:
+            out.append((name, "not installed"))
+    return out

@@ -21,6 +21,7 @@ from twinfalsify.inference.hoeffding import hoeffding_radius
 from twinfalsify.inference.order import content_keys, tied_share
 from twinfalsify.inference.samples import HypothesisSamples
 from twinfalsify.io import read_json, read_parquet
+from twinfalsify.provenance import software_versions
 from twinfalsify.schema import FEATURE_BY_NAME, FEATURES, T_MAX, ContractError, TwinNodes, to_array
 from twinfalsify.stored_runs import WORKER_STATS, failing_patients, restart_warning
 from twinfalsify.tables import markdown_table
@@ -498,8 +499,10 @@ def study_summary(
                                     "value": [str(data.get(k) or "not stated") for k in (
                                         "dataset", "path", "licence", "code_map")]})
               } if data else {}
+    software = pd.DataFrame(software_versions(), columns=["package", "version"])
     return {
         **tables,
+        "software": software,
         "cohort": cohort,
         "ties": ties if ties is not None else pd.DataFrame(columns=["sample", "t", "records",
                                                                      "tied"]),
@@ -533,6 +536,7 @@ _TITLES = {
                "request), hangs (killed at timeout_s), malformed answers",
     "clipped": "Outputs at the bounds: share of twin and data outcomes at or beyond y_lo / "
                "y_up, and their unclipped medians, per twin and outcome",
+    "software": "Software: the versions of the environment that ran the workflow's jobs",
 }
 
 

@@ -29,7 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("runs", "studyconfig"),
     ("pulse",),
     ("summary", "figures", "calibration", "explain", "readme_table", "config_reference",
-     "diff"),
+     "diff", "release"),
 ]
 LAYER_OF = {top: i for i, tops in enumerate(LAYERS) for top in tops}
 

@@ -5,10 +5,41 @@ from pathlib import Path
 
 import sys
 
+from snakemake.sourcecache import LocalSourceFile
 from snakemake.utils import validate
 
-SRC = Path(workflow.basedir) / "src"
-sys.path.insert(0, str(SRC))
+# The workflow's own sources, found relative to this file: in a checkout, and when the
+# workflow is deployed as a module from a local path or a git URL (workflow.basedir is then
+# the deploying folder). A checkout's library (../../src) comes first; a workflow deployed
+# from git uses the twinfalsify installed beside Snakemake, of the workflow's own version.
+SCHEMA = str(workflow.source_path("../schemas/config.schema.yaml"))
+_here = workflow.current_basedir
+_checkout_src = (
+    Path(_here.get_path_or_uri(secret_free=True)).parents[1] / "src"
+    if isinstance(_here, LocalSourceFile)
+    else None
+)
+if _checkout_src is not None and (_checkout_src / "twinfalsify").is_dir():
+    sys.path.insert(0, str(_checkout_src))
+else:
+    _init = Path(workflow.source_path("../../src/twinfalsify/__init__.py")).read_text()
+    WORKFLOW_VERSION = re.search(r'__version__ = "([^"]+)"', _init).group(1)
+    try:
+        import twinfalsify
+    except ImportError:
+        raise ValueError(
+            f"this workflow (twinfalsify {WORKFLOW_VERSION}) needs its library: "
+            f"pip install 'twinfalsify @ git+<the repository URL>@v{WORKFLOW_VERSION}'"
+        ) from None
+    if twinfalsify.__version__ != WORKFLOW_VERSION:
+        raise ValueError(
+            f"this workflow is twinfalsify {WORKFLOW_VERSION} but the installed library is "
+            f"{twinfalsify.__version__}: install the library of the workflow's tag "
+            f"(pip install 'twinfalsify @ git+<the repository URL>@v{WORKFLOW_VERSION}')"
+        )
+import twinfalsify  # noqa: E402
+
+SRC = Path(twinfalsify.__file__).resolve().parents[1]
 from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
 from twinfalsify.provenance import (
     PROTOCOL_CLIENT_MODULES,
@@ -36,9 +67,7 @@ def _config_problem():
             load_yaml_strict(configfile)  # a key written twice: YAML keeps the last
         except ContractError as exc:
             return str(exc)
-    return study_config_error(
-        config, Path(workflow.basedir) / "workflow/schemas/config.schema.yaml"
-    )
+    return study_config_error(config, SCHEMA)
 
 
 _problem = _config_problem()
@@ -112,7 +141,7 @@ def code(script, extra=(), leave=()):
     config uses them: a rule that tests also depends on the methods in use (bound by name),
     and no rule on another source kind's package or a method not in use (code_scope).
     """
-    path = Path(workflow.basedir) / "scripts" / f"{script}.py"
+    path = workflow.source_path(f"../../scripts/{script}.py")
     used, leave_out = code_scope(config, all_methods=script.startswith("calibration"))
     if script not in TWIN_SCRIPTS:  # only a shard script starts twin processes
         leave = (*leave, *PROTOCOL_CLIENT_MODULES)

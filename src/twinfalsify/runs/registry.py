@@ -27,13 +27,14 @@ RUNNER_KEYS = ("protocol", "workers", "timeout_s", "retries", "env", "batch_size
 EXECUTION_KEYS = ("workers", "timeout_s", "retries", "batch_size", "fail_fast_runs",
                   "max_restarts")
 COMMAND_TIMEOUT_S = 600.0  # per run, for a kind command twin whose spec gives no timeout_s
-_SRC = Path(__file__).resolve().parents[2]  # the folder holding the twinfalsify package
+#: the folder holding the twinfalsify package (a checkout's src/, or site-packages)
+LIBRARY_ROOT = Path(__file__).resolve().parents[2]
 
 
 def _library_pythonpath(rest: str | None) -> str:
     """PYTHONPATH for a twin subprocess that imports this very library (scripts run it from
     src/ without installing it): this src/ first, then ``rest``."""
-    return os.pathsep.join(p for p in (str(_SRC), rest) if p)
+    return os.pathsep.join(p for p in (str(LIBRARY_ROOT), rest) if p)
 
 
 def with_execution_keys(spec: dict[str, Any], full: dict[str, Any]) -> dict[str, Any]:
@@ -116,7 +117,7 @@ def check_spec(name: str, spec: dict[str, Any], source: dict[str, Any]) -> None:
     if kind == "command":
         from twinfalsify.runs.command import check_command
 
-        check_command(name, spec, _SRC)
+        check_command(name, spec, LIBRARY_ROOT)
     elif any(spec.get(k) for k in ("code", "code_exclude")):
         key = next(k for k in ("code", "code_exclude") if spec.get(k))
         raise ContractError(f"twins.{name}.{key}: only kind command takes {key} (this twin "
