@@ -221,6 +221,21 @@ def test_cardiovascular_sofa_reads_the_rate_to_3_decimals():
     assert cohort.sofa_components(b)["cardiovascular"].tolist() == [3, 3, 4, 3]
 
 
+def test_the_rate_is_rounded_as_postgresql_rounds_a_numeric():
+    """AI-Clinician's queries round ``cast(rate as numeric)`` to 3 decimals: the double's 15
+    significant digits, halves away from zero. Binary rounding gives 0.1 for 0.1005 (not
+    above SOFA's 0.1 threshold); PostgreSQL gives 0.101 (above it)."""
+    x = pd.Series([0.1005, 0.1015, 0.1004999, 0.2345, 0.0, 10.0079767 * 0.01, np.nan, 2.5e-4])
+    got = cohort.round_half_up(x, 3)
+    want = [0.101, 0.102, 0.1, 0.235, 0.0, 0.1, np.nan, 0.0]
+    np.testing.assert_array_equal(got.to_numpy(), np.array(want))
+    assert pd.Series([0.1005]).round(3).iloc[0] == 0.1  # what binary rounding would give
+    b = pd.DataFrame({c: [np.nan] for c in ("pf", "sofa_platelets", "sofa_bilirubin",
+                                            "MeanBP", "sofa_gcs", "sofa_creatinine")})
+    b["vaso"] = [0.1005]
+    assert cohort.sofa_components(b)["cardiovascular"].tolist() == [4]
+
+
 @pytest.mark.parametrize("system,item,rate,uom,expected", [
     ("mv", 221906, 0.2, "mcg/kg/min", 0.2),
     ("mv", 221906, 16, "mcg/min", 0.2),  # / 80 kg

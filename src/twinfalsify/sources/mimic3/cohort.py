@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
 from pathlib import Path
 
 import duckdb
@@ -659,6 +660,20 @@ def _inputs(con, ids, lo: pd.Series, hi: pd.Series, rewritten: str = "exclude",
 
 
 VASO_DECIMALS = 3  # SOFA reads the norepinephrine-equivalent rate to 3 decimals (sofa_components)
+
+
+def round_half_up(x: pd.Series, decimals: int) -> pd.Series:
+    """``x`` rounded as PostgreSQL's ``round(cast(x as numeric), decimals)`` rounds it (the
+    rounding of AI-Clinician's vasopressor queries): the double read as its 15 significant
+    digits, then halves away from zero (0.1005 -> 0.101, where binary rounding gives 0.1)."""
+    step = Decimal(1).scaleb(-decimals)
+
+    def one(v: float) -> float:
+        if not np.isfinite(v):
+            return v
+        return float(Decimal(format(v, ".15g")).quantize(step, rounding=ROUND_HALF_UP))
+
+    return x.map(one).astype(float)
 SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
 
 
@@ -682,7 +697,7 @@ def sofa_components(b: pd.DataFrame) -> pd.DataFrame:
     # pump computed, e.g. norepinephrine 0.100104 or dopamine 10.008 (x 0.01 = 0.10008) for an
     # ordered 0.1 / 10, which scored 4 points instead of SOFA's 3 (dopamine 5-15: 3 points)
     mapp, gcs, cr = b["MeanBP"], b["sofa_gcs"], b["sofa_creatinine"]
-    vaso = b["vaso"].fillna(0).round(VASO_DECIMALS)
+    vaso = round_half_up(b["vaso"].fillna(0), VASO_DECIMALS)
     uo = b["uo"] if "uo" in b else pd.Series(np.nan, index=b.index)
     return pd.DataFrame({
         "respiration": pts([pf > 400, pf < 400, pf < 300, pf < 200, pf < 100]),
