@@ -265,7 +265,7 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
     ax.set_xlabel("hour t (n: trajectories entering, $\\hat n$: twin runs entering; share of "
                   "the twin's outputs below y_lo, above y_up)", fontsize=9)
     outcome = f["outcome"].iloc[0]
-    ax.set_ylabel(f"{unit_label(outcome)}\n(clipped to [y_lo, y_up]; x: unclipped)")
+    ax.set_ylabel(f"{unit_label(outcome)}\n(clipped to [y_lo, y_up]; x: unclipped)", fontsize=9)
     last = f.iloc[-1]
     default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
     ax.set_title(title or default, fontsize=10)
