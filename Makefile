@@ -53,9 +53,11 @@ docs: $(STAMP)
 config-reference: $(STAMP)
 	$(BIN)/python -m twinfalsify.config_reference
 
-## Write the README's rejection table from the default study's results (after make reproduce).
+## Write the README's rejection table and headline figure (docs/img/, its caption also on the
+## figures page) from the default study's results (after make reproduce).
 readme-table: $(STAMP)
-	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY) --config $(CONFIG) --readme README.md
+	$(BIN)/python -m twinfalsify.readme_table results/$(STUDY) --config $(CONFIG) --readme README.md \
+		--page docs/reference/figures.md
 
 ## Tag a release: the version (src/twinfalsify/__init__.py), CHANGELOG.md's section for it and
 ## CITATION.cff's version and date must agree, and the tree be clean (docs/how-to/deploy.md).

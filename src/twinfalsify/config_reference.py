@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[2]
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 PAGE = ROOT / "docs" / "reference" / "config.md"
 BOUNDS = {"minimum": ">= {}", "exclusiveMinimum": "> {}", "maximum": "<= {}",
-          "exclusiveMaximum": "< {}", "minItems": "at least {} items",
-          "maxItems": "at most {} items", "minProperties": "at least {} entries",
-          "minLength": "at least {} characters", "pattern": "matches `{}`"}  # fmt: skip
+          "exclusiveMaximum": "< {}"}  # fmt: skip
+SIZES = (("item", "minItems", "maxItems"), ("entry", "minProperties", "maxProperties"),
+         ("character", "minLength", "maxLength"))  # fmt: skip
 
 HEADER = """# Configuration reference
 
@@ -43,9 +43,9 @@ a misspelt key, a wrong type or a value out of range stops the run with one line
 key. The options of a test method (`testing.methods.<method>`) are checked by the library
 when the config is read, with the same one-line message.
 
-Each table lists the keys of one section: **type**, **default** (the value used when the key
-is absent; *required* when it must be given), **limits** (the accepted range), an
-**example** value, and the key's **meaning**. Words used here (defined in
+Each table lists the keys of one section, one row per key: its meaning, then its *type*,
+*default* (the value used when the key is absent; *required* when it must be given),
+*limits* (the accepted range) and an *example* value. Words used here (defined in
 [the method](../explanation/method.md)): a *parameter set* is one (outcome, hour t, action
 sequence a_1:t, B-sets B_0:t) with its bounds y_lo, y_up; the *B-sets* are bins of the
 patient's state at hours 0..t (sex x age quartile x outcome above or below its D0 median);
@@ -61,11 +61,13 @@ def _flow(value: Any) -> str:
     return text[1:-1]
 
 
-def _code(text: str) -> str:
-    """Inline code that never wraps (key names, values); ``<``/``>``/``|`` escaped for a
-    table cell of raw HTML."""
+def _code(text: str, wrap: bool = True) -> str:
+    """Inline code for a table cell of raw HTML (``<``/``>``/``|`` escaped): a value, which
+    may wrap (a long list or mapping), or with ``wrap=False`` a key name, which never
+    wraps."""
     text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-    return f'<code style="white-space: nowrap">{text.replace("|", "&#124;")}</code>'
+    style = "" if wrap else ' style="white-space: nowrap"'
+    return f"<code{style}>{text.replace('|', '&#124;')}</code>"
 
 
 def _type(node: dict[str, Any]) -> str:
@@ -83,14 +85,33 @@ def _type(node: dict[str, Any]) -> str:
     return t
 
 
+def _count(lo: int | None, hi: int | None, unit: str) -> str:
+    """'2 items', 'at least 1 item', '1 to 4 items', 'at most 3 entries'."""
+    def n(k: int) -> str:
+        return f"{k} " + (unit if k == 1 else unit[:-1] + "ies" if unit.endswith("y")
+                          else unit + "s")
+    if lo is not None and lo == hi:
+        return n(lo)
+    if lo is not None and hi is not None:
+        return f"{lo} to {n(hi)}"
+    return f"at least {n(lo)}" if lo is not None else f"at most {n(hi)}"
+
+
 def _limits(node: dict[str, Any]) -> str:
-    parts = [fmt.format(node[k]) for k, fmt in BOUNDS.items() if k in node]
+    """The accepted range in words: bounds ('>= 0 and <= 1'), sizes ('1 to 4 items'),
+    a pattern, 'no repeats', and the limits of each item of an array ('each item ...')."""
+    parts = [" and ".join(fmt.format(node[k]) for k, fmt in BOUNDS.items() if k in node)]
+    parts += [_count(node.get(lo), node.get(hi), unit) for unit, lo, hi in SIZES
+              if lo in node or hi in node]  # fmt: skip
+    if "pattern" in node:
+        parts.append(f"matches `{node['pattern']}`")
     if node.get("uniqueItems"):
         parts.append("no repeats")
     items = node.get("items")
-    if isinstance(items, dict) and "enum" not in items:
-        parts += [f"each {p}" for p in _limits(items).split("; ") if p]
-    return "; ".join(parts)
+    inner = _limits(items) if isinstance(items, dict) and "enum" not in items else ""
+    if inner:
+        parts.append(f"each item ({inner})" if ", " in inner else f"each item {inner}")
+    return ", ".join(p for p in parts if p)
 
 
 def _text(text: str) -> str:
@@ -103,9 +124,12 @@ def _text(text: str) -> str:
                          r"[\1](../\1)", text))
 
 
+REQUIRED = "*required*"
+
+
 def _default(node: dict[str, Any], required: bool) -> str:
     if required:
-        return "*required*"
+        return REQUIRED
     if "default" in node:
         return _code(_flow(node["default"]))
     return _text(str(node.get("x-default", "")))
@@ -172,11 +196,17 @@ def problems(schema: dict[str, Any]) -> list[str]:
     return bad
 
 
-def _table(rows: list[tuple[str, ...]]) -> list[str]:
-    lines = ["| key | type | default | limits | example | meaning |",
-             "|---|---|---|---|---|---|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return lines + [""]
+def _row(key: str, meaning: str, type_: str, default: str, limits: str,
+         example: str) -> str:
+    """One key as a two-column table row: the key (never wrapping), then its meaning and,
+    on a line below it, type, default, limits and example."""
+    facts = [f"*type* {type_}", "*required*" if default == REQUIRED else f"*default* {default}"]
+    facts += [f"*limits* {limits}"] * bool(limits) + [f"*example* {example}"] * bool(example)
+    return f"| {_code(key, wrap=False)} | {meaning}<br>{' · '.join(facts)} |"
+
+
+def _table(rows: list[str]) -> list[str]:
+    return ["| key | meaning |", "|---|---|", *rows, ""]
 
 
 def _method_sections() -> list[str]:
@@ -196,10 +226,9 @@ def _method_sections() -> list[str]:
             continue
         rows = []
         for name, o in opts.items():
-            default = o.default_text or _flow(o.default)
-            rows.append((_code(name), o.type, _text(default) if o.default_text
-                         else _code(default), _text(o.limits()), _code(_flow(o.example)),
-                         _text(o.meaning)))
+            default = _text(o.default_text) if o.default_text else _code(_flow(o.default))
+            rows.append(_row(name, _text(o.meaning), o.type, default, _text(o.limits()),
+                             _code(_flow(o.example))))
         lines += _table(rows)
     return lines
 
@@ -219,10 +248,9 @@ def render(schema: dict[str, Any]) -> str:
             lines.append("## Top level\n")
         if not leaves:
             continue
-        rows = []
-        for key, sub, r in leaves:
-            rows.append((_code(key), _text(_type(sub)), _default(sub, r), _text(_limits(sub)),
-                         _example(sub), _text(sub.get("description", ""))))
+        rows = [_row(key, _text(sub.get("description", "")), _text(_type(sub)),
+                     _default(sub, r), _text(_limits(sub)), _example(sub))
+                for key, sub, r in leaves]
         lines += _table(rows)
     lines += _method_sections()
     return "\n".join(lines).rstrip() + "\n"

@@ -69,8 +69,10 @@ def pvalue_boxen(
             mark_floor(ax, part)
             legend_with_headroom(ax)
         ax.set_xlabel("outcome")
-        ax.set_ylabel(f"$-\\log_{{10}}$ {label}")
-        ax.set_title(f"H_{side}: {label}")
+        # the panels share the y axis, whose one label (left) must hold for both sides: the
+        # side is in each panel's title
+        ax.set_ylabel("$-\\log_{10}$ p (dimensionless)")
+        ax.set_title(f"$H_{{{side}}}$: p-values {label}")
         ax.tick_params(axis="x", rotation=60)
     fig.suptitle(title or f"{method} p-values, {kind} hypotheses")
     fig.tight_layout()
@@ -253,15 +255,17 @@ def longitudinal(frame: pd.DataFrame, title: str | None = None) -> plt.Figure:
         ax.plot(t - 0.06, f["twin_mean"], "x", color=COLORS["twin"], ms=8,
                 label="twin mean, unclipped")
     ax.set_xticks(t)
-    beyond = ([f"\ntwin beyond y_lo/y_up {b:.0%}/{a:.0%}" for b, a in
+    # one short line each (four hours side by side must not run into each other)
+    beyond = ([f"\ntwin < y_lo: {b:.0%}\ntwin > y_up: {a:.0%}" for b, a in
                zip(f["twin_below"], f["twin_above"], strict=True)]
               if "twin_below" in f else [""] * len(f))
     ax.set_xticklabels([f"{int(s)}\nn={n}, $\\hat n$={nh}{b}" for s, n, nh, b in
                         zip(f["t"], f["n"], f["nhat"], beyond, strict=True)],
                        fontsize=8)  # fmt: skip
-    ax.set_xlabel("hour t (trajectories entering n, twin runs entering $\\hat n$)")
+    ax.set_xlabel("hour t (n: trajectories entering, $\\hat n$: twin runs entering; share of "
+                  "the twin's outputs below y_lo, above y_up)", fontsize=9)
     outcome = f["outcome"].iloc[0]
-    ax.set_ylabel(f"{unit_label(outcome)}\n(clipped to [y_lo, y_up]; x: unclipped)")
+    ax.set_ylabel(f"{unit_label(outcome)}\n(clipped to [y_lo, y_up]; x: unclipped)", fontsize=9)
     last = f.iloc[-1]
     default = describe_hypothesis(outcome, int(last["t"]), last["actions"], last["bins"])
     ax.set_title(title or default, fontsize=10)
@@ -344,43 +348,75 @@ def outcome_histograms(cases: list[dict], twin: str | None = None,
 # -- item 6: sample sizes ----------------------------------------------------------------------
 
 
-def sample_size_histograms(results: pd.DataFrame, kind: str = "causal",
-                           twin: str | None = None) -> plt.Figure:  # fmt: skip
-    """Histograms of n (observational, entering D) and nhat (twin runs entering) across
-    parameter sets (H_lo and H_up of a set share them), one panel per outcome; log-spaced
-    bins (n + 1 so zeros show). ``twin`` names the twin in the title."""
+def size_ticks(lo: float, hi: float) -> list[int]:
+    """Round sizes (0, then 1, 2, 3, 5 x 10^k) between ``lo`` and ``hi``: at most 7, the
+    2s and 5s dropped first (a narrow range: two sizes inside it), for a log10(size + 1)
+    axis labelled with the sizes."""
+    cands = [0] + [m * 10**k for k in range(7) for m in (1, 2, 3, 5)]
+    inside = [c for c in cands if lo <= c <= hi]
+    if len(inside) < 2:  # a narrow range: sizes inside it, with as few digits as will do
+        for digits in range(2, 8):
+            vals = {int(float(f"{v:.{digits}g}")) for v in np.linspace(max(lo, 0), hi, 5)[1:4]}
+            vals = sorted(v for v in vals if lo <= v <= hi)
+            if len(vals) >= 2:
+                return vals
+    for keep in ((1, 2, 3, 5), (1, 3), (1,)):
+        pick = [c for c in inside if c == 0 or int(str(c)[0]) in keep]
+        if len(pick) <= 7:
+            break
+    return pick
+
+
+def sample_size_strips(results: pd.DataFrame, kind: str = "causal",
+                       twin: str | None = None) -> plt.Figure:  # fmt: skip
+    """n (test-set trajectories entering the bounds) and nhat (twin runs entering) of every
+    parameter set (H_lo and H_up of a set share them): two panels, one row per outcome that
+    has parameter sets, one point per set, coloured and offset by its hour t; x is
+    log10(size + 1), labelled with the sizes, over the range of the data, so zeros show
+    (untestable sets) and no panel is empty. ``twin`` names the twin in the title."""
     apply_style()
     sub = results[results["kind"] == kind].drop_duplicates("hyp_id")
     if sub.empty:
         sub = results.drop_duplicates("hyp_id")
         kind = "all"
     outs = [o for o in OUTCOMES if o in set(sub["outcome"])]
-    ncol = min(5, len(outs))
-    nrow = int(np.ceil(len(outs) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(2.7 * ncol, 2.2 * nrow + 0.6), squeeze=False,
-                             sharex=True)  # fmt: skip
-    # log10(size + 1) on a linear axis: same picture as a log axis, without its costly ticks
-    top = np.log10(max(2.0, float(max(sub["n"].max(), sub["nhat"].max())) + 1))
-    edges = np.linspace(0.0, top, 20)
-    powers = np.arange(0, int(np.ceil(top)) + 1)
-    for ax, o in zip(axes.flat, outs, strict=False):
-        part = sub[sub["outcome"] == o]
-        ax.hist(np.log10(part["n"] + 1), bins=edges, alpha=0.5, color=COLORS["bound"],
-                label="n (data)")  # fmt: skip
-        ax.hist(np.log10(part["nhat"] + 1), bins=edges, alpha=0.5, color=COLORS["twin"],
-                label=r"$\hat n$ (twin)")  # fmt: skip
-        ax.set_xticks(powers, [f"$10^{p}$" for p in powers])
-        ax.set_title(o, fontsize=9)
-    for ax in axes.flat[len(outs) :]:
-        ax.set_visible(False)
-    for ax in axes[:, 0]:
-        ax.set_ylabel("parameter sets")
-    for ax in axes[-1, :]:
-        ax.set_xlabel("sample size + 1 (trajectories)")
-    axes.flat[0].legend(fontsize=7)
+    outs += sorted(set(sub["outcome"]) - set(outs), key=str)
+    hours = sorted(int(t) for t in pd.unique(sub["t"]))
+    colours = dict(zip(hours, plt.get_cmap("viridis")(np.linspace(0.1, 0.85, len(hours))),
+                       strict=True))  # fmt: skip
+    width = 0.6 / max(1, len(hours))  # hours side by side within an outcome's row
+    fig, axes = plt.subplots(1, 2, figsize=(10.5, 0.32 * len(outs) + 1.6), sharey=True,
+                             squeeze=False)  # fmt: skip
+    row = {o: i for i, o in enumerate(outs)}
+    for ax, col, what in zip(axes[0], ("n", "nhat"),
+                             ("n: test-set trajectories entering the bounds",
+                              r"$\hat n$: twin runs entering"), strict=True):  # fmt: skip
+        x = np.log10(sub[col].to_numpy(float) + 1)
+        for t in hours:
+            at = (sub["t"] == t).to_numpy()
+            y = np.array([row[o] for o in sub.loc[at, "outcome"]], float)
+            y += (hours.index(t) - (len(hours) - 1) / 2) * width
+            ax.scatter(x[at], y, s=9, color=colours[t], alpha=0.7, edgecolors="none",
+                       label=f"t = {t}")  # fmt: skip
+        lo, hi = float(x.min()), float(x.max())
+        pad = max(0.05, 0.04 * (hi - lo))
+        ax.set_xlim(max(-0.08, lo - pad), hi + pad)
+        ticks = size_ticks(10 ** (lo - pad) - 1, 10 ** (hi + pad) - 1)
+        ax.set_xticks(np.log10(np.asarray(ticks, float) + 1), [f"{v:,}" for v in ticks])
+        ax.set_xlabel(f"{what} (log scale of size + 1)")
+        zeros = int((sub[col] == 0).sum())
+        ax.set_title(f"{what.split(':')[0]}: median {int(sub[col].median()):,}, "
+                     f"{zeros} of {len(sub)} sets at 0", fontsize=9)  # fmt: skip
+    ax0 = axes[0, 0]
+    ax0.set_yticks(range(len(outs)), outs)
+    ax0.set_ylim(len(outs) - 0.5, -0.5)  # the first outcome on top
+    ax0.set_ylabel("outcome")
+    handles, labels = ax0.get_legend_handles_labels()
     head = f"twin {twin}: " if twin else ""
-    fig.suptitle(f"{head}sample sizes of the {len(sub)} {kind} parameter sets")
-    fig.tight_layout()
+    fig.suptitle(f"{head}sample sizes of the {len(sub)} {kind} parameter sets", fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1 - 0.9 / fig.get_size_inches()[0], 1))
+    fig.legend(handles, labels, loc="center right", fontsize=8, frameon=False,
+               title="hour", title_fontsize=8, markerscale=1.6)  # fmt: skip
     return fig
 
 
@@ -389,17 +425,31 @@ def sample_size_histograms(results: pd.DataFrame, kind: str = "causal",
 
 def propensity_scatter(results: pd.DataFrame, twin: str | None = None) -> plt.Figure:
     """P(A_1:t = a_1:t | X_0:N in B_0:N) against n, one point per parameter set, coloured by
-    rejection (of H_lo or H_up), one panel per (method, kind). Low propensity = wide bounds =
-    hard to reject. ``twin`` names the twin in the title."""
+    rejection (of H_lo or H_up), one panel per (method, kind) that has a parameter set with
+    n > 0: a row per method, a column per bound kind, each column's n axis over its own data
+    (Manski sets have all of D, causal ones a subgroup). Low propensity = wide bounds = hard
+    to reject. ``twin`` names the twin in the title."""
     apply_style()
-    methods = list(pd.unique(results["method"]))
-    kinds = [k for k in ("causal", "manski") if k in set(results["kind"])]
-    size = (5.2 * len(kinds), 3.8 * len(methods))
-    fig, axes = plt.subplots(
-        len(methods), len(kinds), figsize=size, squeeze=False, sharex=True, sharey=True
-    )
-    for i, m in enumerate(methods):
-        for j, k in enumerate(kinds):
+    drawn = results[results["n"] > 0]
+    methods = [m for m in pd.unique(results["method"]) if (drawn["method"] == m).any()]
+    kinds = [k for k in ("causal", "manski") if (drawn["kind"] == k).any()]
+    kinds += sorted(set(drawn["kind"]) - set(kinds))
+    if not methods:  # nothing to draw: one panel saying so
+        methods, kinds = list(pd.unique(results["method"]))[:1] or ["-"], ["causal"]
+    span = {}  # per kind: the range of n drawn
+    for k in kinds:
+        n_k = drawn.loc[drawn["kind"] == k, "n"].to_numpy(float)
+        span[k] = (float(n_k.min()), float(n_k.max())) if n_k.size else (1.0, 10.0)
+    # a kind whose sets all have one n (Manski: all of D) gets a narrow column, a strip
+    narrow = {k: span[k][1] <= 1.02 * span[k][0] for k in kinds}
+    ratios = [0.45 if narrow[k] else 1.0 for k in kinds]
+    size = (5.2 * sum(ratios) + 0.4, 3.8 * len(methods))
+    fig, axes = plt.subplots(len(methods), len(kinds), figsize=size, squeeze=False,
+                             sharex="col", sharey=True,
+                             gridspec_kw={"width_ratios": ratios})  # fmt: skip
+    for j, k in enumerate(kinds):
+        lo, hi = span[k]
+        for i, m in enumerate(methods):
             ax = axes[i, j]
             part = results[(results["method"] == m) & (results["kind"] == k)]
             per = part.groupby("hyp_id").agg(n=("n", "first"), p=("propensity", "first"),
@@ -412,10 +462,18 @@ def propensity_scatter(results: pd.DataFrame, twin: str | None = None) -> plt.Fi
                            label=lab, edgecolors="none")  # fmt: skip
             ax.set_xscale("log")
             ax.set_ylim(-0.02, 1.02)
-            ax.set_title(f"{m}, {k}: {int(per['rej'].sum())} of {len(per)} parameter sets "
-                         "rejected", fontsize=10)  # fmt: skip
-            ax.set_xlabel("n (test-set trajectories entering)")
-            ax.set_ylabel("$P(A_{1:t} = a_{1:t} | X_{0:N} \\in B_{0:N})$")
+            ax.set_title(f"{m}, {k}:{chr(10) if narrow[k] else ' '}{int(per['rej'].sum())} of "
+                         f"{len(per)} parameter sets rejected", fontsize=10)  # fmt: skip
+            ax.set_xlabel("n (test-set trajectories\nentering)" if narrow[k]
+                          else "n (test-set trajectories entering)")  # fmt: skip
+            if j == 0:  # the panels share the y axis
+                ax.set_ylabel("$P(A_{1:t} = a_{1:t} | X_{0:N} \\in B_{0:N})$")
+        # the column's n range, a little wider (a log axis around one value if all share n)
+        pad = max(1.08, (hi / lo) ** 0.05)
+        axes[0, j].set_xlim(lo / pad, hi * pad)
+        ticks = [int(lo)] if narrow[k] else size_ticks(lo / pad, hi * pad)
+        axes[0, j].set_xticks(ticks, [f"{v:,}" for v in ticks])
+        axes[0, j].xaxis.set_minor_locator(plt.NullLocator())
     # one legend for every panel, above them: no panel's points can sit under it
     handles, labels = axes[0, 0].get_legend_handles_labels()
     head = f"twin {twin}: " if twin else ""
@@ -555,8 +613,9 @@ def pvalue_boxen_methods(
                 mark_floor(ax, part)
                 legend_with_headroom(ax)
             ax.set_xlabel("outcome" if i == len(methods) - 1 else "")
-            ax.set_ylabel(f"$-\\log_{{10}}\\ p_{{{side}}}$ (dimensionless)")
-            ax.set_title(f"{method}: $H_{{{side}}}$", fontsize=10)
+            # one y label per row (the row's panels share the axis): the side is in the title
+            ax.set_ylabel("$-\\log_{10}$ p (dimensionless)")
+            ax.set_title(f"{method}: $H_{{{side}}}$, p-values $p_{{{side}}}$", fontsize=10)
             ax.tick_params(axis="x", rotation=60)
     fig.suptitle(title or f"p-values, {kind} hypotheses")
     fig.tight_layout()

@@ -211,11 +211,54 @@ def test_study_summary_matches_results(st):
     assert "<table" in summary.summary_html("s", tabs)
 
 
-def test_sample_size_figure_is_not_blank(st, tmp_path):
+def test_sample_size_figure_has_a_point_per_set_and_no_empty_panel(st, tmp_path):
+    """Two panels (n, nhat), one row per outcome present (no empty facet), one point per
+    causal parameter set in each, and an x range that is the data's (padded), labelled with
+    sizes."""
     few = st.results[st.results["outcome"].isin(["HR", "Sodium", "Glucose"])]  # any subset
-    fig = figures.sample_size_histograms(few)
-    assert sum(ax.get_visible() for ax in fig.axes) == 3
+    fig = figures.sample_size_strips(few)
+    sets = few[few["kind"] == "causal"].drop_duplicates("hyp_id")
+    assert len(fig.axes) == 2
+    assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == ["HR", "Sodium", "Glucose"]
+    for ax, col in zip(fig.axes, ("n", "nhat"), strict=True):
+        xs = np.concatenate([c.get_offsets()[:, 0] for c in ax.collections])
+        assert len(xs) == len(sets)
+        np.testing.assert_allclose(np.sort(xs), np.sort(np.log10(sets[col] + 1.0)))
+        lo, hi = ax.get_xlim()
+        span = xs.max() - xs.min()
+        assert lo <= xs.min() and hi >= xs.max() and (hi - lo) <= span + 2 * max(0.05, span / 25)
+        labels = [int(t.get_text().replace(",", "")) for t in ax.get_xticklabels()]
+        assert len(labels) >= 2 and labels == sorted(labels)
+        assert all(lo <= np.log10(v + 1) <= hi for v in labels)
     _png_ok(fig, tmp_path / "_tf_n.png")
+
+
+@pytest.mark.parametrize("lo, hi", [(150, 1000), (-0.1, 500), (0, 20_000), (1100, 1300),
+                                    (1180, 1190)])
+def test_size_ticks_are_round_sizes_inside_the_range(lo, hi):
+    ticks = figures.size_ticks(lo, hi)
+    assert 2 <= len(ticks) <= 7 and ticks == sorted(set(ticks))
+    assert all(lo <= v <= hi for v in ticks)
+
+
+def test_propensity_columns_have_their_own_n_range_and_only_panels_with_data(st):
+    """The causal column's n axis is over the causal sets' n, not stretched to the Manski
+    sets' (all of D); a bound kind without a set of n > 0 gets no column."""
+    fig = figures.propensity_scatter(st.results)
+    causal = st.results[(st.results["kind"] == "causal") & (st.results["n"] > 0)]["n"]
+    manski = st.results[st.results["kind"] == "manski"]["n"]
+    ax_c, ax_m = fig.axes
+    assert "causal" in ax_c.get_title() and "manski" in ax_m.get_title()
+    lo, hi = ax_c.get_xlim()
+    assert lo <= causal.min() and hi >= causal.max() and hi < manski.min()
+    lo, hi = ax_m.get_xlim()
+    assert lo <= manski.min() <= manski.max() <= hi < 1.2 * manski.max()
+    for ax in fig.axes:  # every panel has points
+        assert sum(len(c.get_offsets()) for c in ax.collections) > 0
+    only_causal = st.results.assign(n=np.where(st.results["kind"] == "manski", 0,
+                                               st.results["n"]))  # fmt: skip
+    fig = figures.propensity_scatter(only_causal)
+    assert [ax.get_title().split(":")[0] for ax in fig.axes] == ["hoeffding, causal"]
 
 
 def test_propensity_and_sensitivity_figures_handle_any_methods(st, tmp_path):
@@ -303,6 +346,24 @@ def test_pvalue_figures_mark_the_bootstrap_floor_and_keep_the_holm_line():
         # H_up: nothing rejected, nothing at the floor: only the threshold line
         labels = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
         assert labels == ["Holm threshold, alpha = 0.05: 0 of 12 rejected"]
+
+
+def test_pvalue_panels_name_their_side_and_the_shared_axis_names_none():
+    """The two panels of a row share one y axis, whose label (drawn once, on the left) must
+    hold for both: it says -log10 p, and each panel's title names its side, H_lo / p_lo or
+    H_up / p_up."""
+    res = pd.DataFrame([{"hyp_id": i, "kind": "causal", "outcome": "HR", "t": 1, "side": side,
+                         "method": m, "p_value": 0.5, "p_floor": False, "rejected": False,
+                         "correction": "holm", "alpha": 0.05}
+                        for i in range(5) for side in ("lo", "up")
+                        for m in ("hoeffding", "betting")])  # fmt: skip
+    for fig in (figures.pvalue_boxen(res), figures.pvalue_boxen_methods(res)):
+        for i, ax in enumerate(fig.axes):
+            side = ("lo", "up")[i % 2]
+            other = ("lo", "up")[1 - i % 2]
+            assert f"H_{{{side}}}" in ax.get_title() and f"p_{{{side}}}" in ax.get_title()
+            assert other not in ax.get_title(), ax.get_title()
+            assert ax.get_ylabel() == "$-\\log_{10}$ p (dimensionless)"
 
 
 def _overlaps(fig, a, b) -> bool:
@@ -461,10 +522,11 @@ def test_an_all_null_panel_shows_the_threshold_from_zero():
 def test_every_twin_figure_names_its_twin_and_its_unit(st):
     """Propensity, sample sizes, histograms and sensitivity say which twin they show; panels
     counting parameter sets say so."""
-    fig = figures.sample_size_histograms(st.results, twin="biased")
+    fig = figures.sample_size_strips(st.results, twin="biased")
     n_sets = st.results[st.results["kind"] == "causal"]["hyp_id"].nunique()
     assert fig.get_suptitle() == f"twin biased: sample sizes of the {n_sets} causal parameter sets"
-    assert fig.axes[0].get_ylabel() == "parameter sets"
+    assert fig.axes[0].get_ylabel() == "outcome"
+    assert all(f"of {n_sets} sets at 0" in ax.get_title() for ax in fig.axes)
     fig = figures.propensity_scatter(st.results, twin="biased")
     assert fig.get_suptitle().startswith("twin biased: ")
     assert all("parameter sets rejected" in ax.get_title() for ax in fig.axes)

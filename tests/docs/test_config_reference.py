@@ -12,9 +12,12 @@ import copy
 import inspect
 import math
 import re
+from html.parser import HTMLParser
 
 import jsonschema
+import markdown
 import pytest
+import yaml
 
 from twinfalsify import config_reference as ref
 from twinfalsify.inference import registry
@@ -87,10 +90,10 @@ def test_every_schema_key_is_on_the_page_in_its_section_unwrapped():
         assert NOWRAP.format(key) in _section(page, heading), f"{path}.{key} not on the page"
     row = next(line for line in _section(page, "## `design`").splitlines()
                if NOWRAP.format("min_support") in line)
-    assert NOWRAP.format("10") in row and "&gt;= 1" in row
+    assert "*default* <code>10</code>" in row and "*limits* &gt;= 1" in row
     row = next(line for line in _section(page, "## `testing`").splitlines()
                if NOWRAP.format("correction") in line)
-    assert "holm" in row and "bonferroni" in row and NOWRAP.format("holm") in row
+    assert "holm" in row and "bonferroni" in row and "*default* <code>holm</code>" in row
     # a doc path in a description becomes a link the strict site build checks
     assert "[explanation/sequential.md](../explanation/sequential.md)" in page
 
@@ -172,3 +175,68 @@ def test_no_key_name_wraps_on_the_page():
         if line.startswith("| <code"):
             first = line.split(" | ")[0]
             assert re.fullmatch(r"\| <code style=\"white-space: nowrap\">[^<]+</code>", first)
+
+
+class _Tables(HTMLParser):
+    """The cells of every HTML table, as text: tables -> rows -> cells."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: list[list[list[str]]] = []
+        self.in_cell = False
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tr":
+            self.tables[-1].append([])
+        elif tag in ("td", "th"):
+            self.tables[-1][-1].append("")
+            self.in_cell = True
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th"):
+            self.in_cell = False
+
+    def handle_data(self, data):
+        if self.in_cell:
+            self.tables[-1][-1][-1] += data
+
+
+def _html(page: str) -> str:
+    """The page as the site's Markdown renders it (the extensions of mkdocs.yml that make
+    tables)."""
+    site = yaml.safe_load((ref.ROOT / "mkdocs.yml").read_text())
+    names = [e if isinstance(e, str) else next(iter(e)) for e in site["markdown_extensions"]]
+    return markdown.markdown(page, extensions=[e for e in names if e in ("tables", "toc")])
+
+
+def test_every_table_is_two_columns_a_short_key_and_its_meaning():
+    """No table is wider than the page: each row is the key (one short word that never
+    wraps) and one wide column with the meaning, then type, default, limits and example, so
+    the meaning has most of the width in every section (the config's first keys too)."""
+    page = ref.render(SCHEMA)
+    for line in page.splitlines():
+        if line.startswith("|"):
+            assert len(re.split(r"(?<!\\)\|", line.strip())) == 4, line  # 2 cells
+    parser = _Tables()
+    parser.feed(_html(page))
+    assert len(parser.tables) >= 19
+    longest = 0
+    for table in parser.tables:
+        assert table[0] == ["key", "meaning"], table[0]
+        for key, cell in table[1:]:
+            longest = max(longest, len(key))
+            assert " " not in key and "*type* " not in cell and "type " in cell, (key, cell)
+    assert longest <= 24, longest
+    # each leaf key's row holds its description, its type and its default as the page's
+    # Markdown renders them
+    rows = {(t, r[0]): r[1] for t, table in enumerate(parser.tables) for r in table[1:]}
+    for _, key, sub in _leaves(SCHEMA):
+        text = sub["description"]
+        assert any(k == key and text.split(" (")[0][:40] in cell
+                   for (_, k), cell in rows.items()), key
+    design = next(t for t in parser.tables if any(r[0] == "quantiles" for r in t))
+    cell = next(r[1] for r in design if r[0] == "quantiles")
+    assert cell.startswith("y_lo, y_up = these quantiles")
+    assert "default [0.2, 0.8]" in cell and "limits 2 items, each item >= 0 and <= 1" in cell

@@ -127,3 +127,11 @@ def test_report_includes_every_figure_with_captions(study):
     assert any("'alpha': 0.05" in p for p in shown), shown[:3]
     assert not any("\\" in p for p in shown), [p for p in shown if "\\" in p][:3]
     assert sum(n.endswith(".png") for n in zf.namelist()) >= len(FIGURES) * len(cfg["twins"]) + 1
+    # the introduction: documentation pages by name (no file paths a report reader cannot
+    # open), the correction's families, what the `code` parameter is, the Software table
+    intro = re.sub(r"<[^>]+>", "", re.search(r'var workflow_desc = "(.*?)";\n', html,
+                                             re.S).group(1))  # fmt: skip
+    assert "docs/" not in intro and ".md" not in intro
+    assert "Statistics page of the documentation" in intro
+    assert "one test method and one bound kind" in intro
+    assert "fingerprint of the code the job ran" in intro and "Software" in intro
