@@ -1,7 +1,7 @@
 """The README's rejection table and headline figure, generated from a study's results.
 
 For every twin of a finished study (``results/<study>/twins/<twin>/results.parquet``) and
-every (test method, bound kind): rejected hypotheses / hypotheses tested, after the study's
+every (test method, bound kind): rejected hypotheses / hypotheses, after the study's
 correction. A hypothesis is one side (H_lo or H_up) of a parameter set, so every count is
 two per parameter set; the sentence above the table says so, with the parameter sets per
 kind, the correction and alpha, all read from the results.
@@ -94,8 +94,9 @@ def markdown(c: pd.DataFrame) -> str:
     per_kind = " and ".join(f"{int(sets[k])} {'Manski' if k == 'manski' else k} parameter sets"
                             for k in ("causal", "manski") if k in sets.index)  # fmt: skip
     rule = CORRECTION_TEXT.get(correction, correction + " at {alpha:g}").format(alpha=alpha)
-    head = (f"Each cell: rejected hypotheses / hypotheses tested ({rule}, within each method "
-            f"and bound kind; {per_kind}, two one-sided hypotheses, H_lo and H_up, each).")
+    head = (f"Each cell: rejected hypotheses / hypotheses ({rule}, within each method "
+            f"and bound kind; {per_kind}, two one-sided hypotheses, H_lo and H_up, each; a "
+            f"method's refused hypotheses, p = 1 by rule, count in the denominator).")
     cols = _columns(c)
     lines = [head, "",
              "| twin | " + " | ".join(f"{METHOD_NAMES.get(m, m)} "

@@ -129,7 +129,7 @@ def test_the_figure_caption_is_the_tiny_studys_figure(test_study, tmp_path):
 def test_the_readme_block_has_the_generators_format():
     block = rt.readme_block((ROOT / "README.md").read_text())
     lines = block.splitlines()
-    assert lines[0].startswith("Each cell: rejected hypotheses / hypotheses tested (")
+    assert lines[0].startswith("Each cell: rejected hypotheses / hypotheses (")
     m = re.search(r"(\d+) causal parameter sets and (\d+) Manski parameter sets", lines[0])
     assert m, lines[0]
     header = [h.strip() for h in lines[2].strip("|").split("|")]

@@ -109,7 +109,7 @@ OPTIONS: dict[str, dict[str, OptionDoc]] = {
         "tune_alpha": OptionDoc(
             "number or null", None, "the level the plug-in bets are tuned for", 0.001,
             lo=0.0, hi=1.0, lo_open=True, hi_open=True,
-            default_text="null = 0.05 / (2 H), H the hypotheses tested"),
+            default_text="null = testing.alpha / (2 H), H the parameter sets tested together"),
         "grid": OptionDoc(
             "integer", 6, "mixture bets: J constant bets in the mixture", 8, lo=1),
         "grid_ratio": OptionDoc(
