@@ -93,9 +93,9 @@ rule twin_shard:
         f"{LOGS}/twins/{{twin}}/shard_{{shard}}.log",
     benchmark:
         f"{R}/benchmarks/twins/{{twin}}/shard_{{shard}}.tsv"
+    priority: 40
     group:
         "twin_shards"
-    priority: 40
     conda:
         "../../envs/twinfalsify.yaml"
     # twin processes of a protocol/command twin (workers) = cores the job uses
