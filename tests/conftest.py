@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from helpers.paths import ROOT, SRC, TESTS
-from helpers.workflow import built_once, run_snakemake
+from helpers.workflow import build_failing_twin_study, built_once, run_snakemake
 
 sys.path.insert(0, str(SRC))
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -69,6 +69,15 @@ def test_study(tmp_path_factory):
 
     work = built_once(tmp_path_factory, "test-study", build)
     return work, work / "test.yaml"
+
+
+@pytest.fixture(scope="session")
+def failing_twin_study(tmp_path_factory):
+    """The study of ``helpers.workflow.failing_twin_config`` (a command twin failing some
+    runs, three methods) with every output, built once per test run and shared by every
+    worker: (workdir, config path). Read it; to rerun or change it, work on a copy."""
+    work = built_once(tmp_path_factory, "failing-twin-study", build_failing_twin_study)
+    return work, work / "study.yaml"
 
 
 @pytest.fixture(scope="session")
