@@ -60,12 +60,14 @@ def no_leftover_processes():
 def test_study(tmp_path_factory):
     """The tiny study of config/test.yaml with every output, built once per test run and
     shared by every worker: (workdir, config path). Read it; to rerun or change it, work on
-    ``copy_study`` of it."""
+    ``copy_study`` of it. ``build.log`` beside the config is Snakemake's output of the build
+    (every job that ran)."""
 
     def build(work: Path) -> None:
         shutil.copy(ROOT / "config" / "test.yaml", work / "test.yaml")
         run = run_snakemake(work, work / "test.yaml", "--cores", "2")
         assert run.returncode == 0, run.stderr[-3000:]
+        (work / "build.log").write_text(run.stdout + run.stderr)
 
     work = built_once(tmp_path_factory, "test-study", build)
     return work, work / "test.yaml"
