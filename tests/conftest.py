@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from helpers.paths import ROOT, SRC, TESTS
-from helpers.workflow import built_once, run_snakemake
+from helpers.workflow import build_failing_twin_study, built_once, run_snakemake
 
 sys.path.insert(0, str(SRC))
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -60,15 +60,26 @@ def no_leftover_processes():
 def test_study(tmp_path_factory):
     """The tiny study of config/test.yaml with every output, built once per test run and
     shared by every worker: (workdir, config path). Read it; to rerun or change it, work on
-    ``copy_study`` of it."""
+    ``copy_study`` of it. ``build.log`` beside the config is Snakemake's output of the build
+    (every job that ran)."""
 
     def build(work: Path) -> None:
         shutil.copy(ROOT / "config" / "test.yaml", work / "test.yaml")
         run = run_snakemake(work, work / "test.yaml", "--cores", "2")
         assert run.returncode == 0, run.stderr[-3000:]
+        (work / "build.log").write_text(run.stdout + run.stderr)
 
     work = built_once(tmp_path_factory, "test-study", build)
     return work, work / "test.yaml"
+
+
+@pytest.fixture(scope="session")
+def failing_twin_study(tmp_path_factory):
+    """The study of ``helpers.workflow.failing_twin_config`` (a command twin failing some
+    runs, three methods) with every output, built once per test run and shared by every
+    worker: (workdir, config path). Read it; to rerun or change it, work on a copy."""
+    work = built_once(tmp_path_factory, "failing-twin-study", build_failing_twin_study)
+    return work, work / "study.yaml"
 
 
 @pytest.fixture(scope="session")

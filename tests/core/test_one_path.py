@@ -12,41 +12,23 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from fakes import FAULTY_TWIN
 from helpers.paths import ROOT
-from helpers.workflow import built_once, run_snakemake
+from helpers.workflow import FAILING_TWIN as TWIN
+from helpers.workflow import FAILING_TWIN_METHODS as METHODS
 
 from twinfalsify import summary, twin_tests
 from twinfalsify.explain import explain
 
 pytestmark = pytest.mark.slow
 
-TWIN = "faulty"
-METHODS = {"hoeffding": {"factor": 2}, "betting": {}, "bootstrap": {"min_n": 20}}
-
 
 @pytest.fixture(scope="module")
-def failing_study(tmp_path_factory):
+def failing_study(failing_twin_study):
     """config/test.yaml with one command twin that fails about one run in five (irreversible
     in hour 2, or refusing X_0) and starts the others from one fixed patient whatever their
-    X_0 (so subgroups are rejected), every output built."""
-
-    def build(work: Path) -> None:
-        cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
-        cfg["study"] = "onepath"
-        cfg["twin_runs"] = {"runs_per_sequence": 200, "n_shards": 1}
-        cfg["twins"] = {TWIN: {
-            "kind": "command", "workers": 1, "timeout_s": 60,
-            "command": [*FAULTY_TWIN, "--mode=irreversible:%7=0", "--mode=init_failed:%11=4",
-                        "--mode=x0_ignored", "--irreversible-hour=2"],
-            "env": {"PYTHONPATH": str(ROOT / "src")}}}
-        cfg["testing"] = {"alpha": 0.05, "correction": "holm", "failed_runs": "conservative",
-                          "methods": METHODS}
-        (work / "study.yaml").write_text(yaml.safe_dump(cfg))
-        run = run_snakemake(work, work / "study.yaml", "--cores", "2")
-        assert run.returncode == 0, run.stderr[-3000:]
-
-    work = built_once(tmp_path_factory, "one-path-study", build)
+    X_0 (so subgroups are rejected), every output built: conftest's ``failing_twin_study``
+    (``helpers.workflow.failing_twin_config``), shared with the reproducibility test."""
+    work, _ = failing_twin_study
     return work / "results" / "onepath"
 
 

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 from helpers.paths import ROOT
-from helpers.workflow import run_snakemake
+from helpers.workflow import copy_study, run_snakemake
 
 from twinfalsify import summary
 from twinfalsify.falsify import make_methods
@@ -83,17 +83,21 @@ def test_a_twin_failing_most_patients_is_warned_about():
 
 
 @pytest.mark.slow
-def test_the_bootstrap_refusals_reach_the_console_and_the_results_table(tmp_path):
+def test_the_bootstrap_refusals_reach_the_console_and_the_results_table(tmp_path, test_study):
     """config/test.yaml with ``bootstrap: {}``: too few samples for most hypotheses; the
-    console says so per method and results.parquet marks them refused (p = 1 by rule)."""
+    console says so per method and results.parquet marks them refused (p = 1 by rule).
+    Run on a copy of the finished config/test.yaml study: a testing method changes only
+    the tests (the twin's runs are the study's)."""
+    work = copy_study(test_study[0], tmp_path / "study")
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     cfg["testing"]["methods"]["bootstrap"] = {}
-    config = tmp_path / "boot.yaml"
+    config = work / "boot.yaml"
     config.write_text(yaml.safe_dump(cfg))
     target = "results/test/twins/oracle/results.parquet"
-    done = run_snakemake(tmp_path, config, "--cores", "2", target)
+    done = run_snakemake(work, config, "--cores", "2", target)
     assert done.returncode == 0, done.stderr[-3000:]
-    res = pd.read_parquet(tmp_path / target)
+    assert "rule twin_shard" not in done.stderr and "rule tests" in done.stderr
+    res = pd.read_parquet(work / target)
     boot = res[res["method"] == "bootstrap"]
     assert boot["refused"].sum() > 0
     assert (boot.loc[boot["refused"], "p_value"] == 1.0).all()

@@ -84,6 +84,8 @@ the Pulse worker does; ``--engine-hours`` then counts only the hours it kept.
 Every answer's message carries ``pid=<pid> start=<t0> end=<t1>`` (wall-clock
 times around the work), so tests can check parallelism from the twins' own
 timestamps; an answer given inside a simulate_batch of n runs adds ``batch=<n>``.
+``--no-stamp`` leaves the stamp out: equal requests then get equal answers, failed runs'
+messages included (a study whose results must be the same bytes run after run).
 """
 
 from __future__ import annotations
@@ -287,6 +289,8 @@ def _answer(msg: dict[str, Any], modes: list[tuple[str, str]], args: argparse.Na
     elif mode == "clamp" and float(x0["HR"]) > 110:
         answer["clamped"] = {"HR": [float(x0["HR"]), 110.0]}
         answer["hours"] = expected({**x0, "HR": 110.0}, doses[:hours_asked], seed)
+    if args.no_stamp:
+        return answer, mode
     stamp = f"pid={os.getpid()} start={t0:.6f} end={time.time():.6f}"
     if batch:
         stamp += f" batch={batch}"
@@ -316,6 +320,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="advertise capabilities.truncate and stop runs no path needs")
     parser.add_argument("--save-restore", action="store_true",
                         help="advertise capabilities.save_restore (the answers do not change)")
+    parser.add_argument("--no-stamp", action="store_true",
+                        help="no pid and times in the messages (deterministic answers)")
     args = parser.parse_args(argv)
     modes = _parse_modes(args.mode)
     twin_modes = {m for m, _ in modes if m in TWIN_MODES}

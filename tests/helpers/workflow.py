@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import yaml
 from filelock import FileLock
 
 from helpers.paths import ROOT
@@ -87,3 +88,42 @@ def mimic_study_config(study: str, kind: str, path: str | None) -> dict:
             "twins": {"fitted": {"kind": "fitted", "inputs": "init"}},
             "testing": {"alpha": 0.05, "correction": "holm",
                         "methods": {"hoeffding": {"factor": 2}}}}
+
+
+# The study of a command twin that fails some runs, shared by tests/core/test_one_path.py (one
+# path from stored runs to p-values) and tests/workflow/test_command_twin_reproducible.py (a
+# second clean run gives identical files): conftest's ``failing_twin_study`` builds it once.
+FAILING_TWIN = "faulty"
+FAILING_TWIN_METHODS = {"hoeffding": {"factor": 2}, "betting": {}, "bootstrap": {"min_n": 20}}
+
+
+def failing_twin_config() -> dict:
+    """config/test.yaml with one command twin (tests/fakes/faulty_twin.py) that fails about
+    one run in five (irreversible in hour 2, or refusing X_0) and starts the others from one
+    fixed patient whatever their X_0 (so subgroups are rejected), under
+    ``failed_runs: conservative`` with three methods. Its timed probe runs (seeds 0, 1, 2;
+    no study run has so small a seed) include one slowed down (``slow:0``): a measured time
+    that varies between runs, which must stay out of the result files; its answers carry no
+    pid or time (``--no-stamp``), so a failed run's message is the same in every run."""
+    from fakes import FAULTY_TWIN
+
+    cfg = yaml.safe_load(BASE_CONFIG.read_text())
+    cfg["study"] = "onepath"
+    cfg["twin_runs"] = {"runs_per_sequence": 200, "n_shards": 2}
+    cfg["twins"] = {FAILING_TWIN: {
+        "kind": "command", "workers": 1, "timeout_s": 60,
+        "command": [*FAULTY_TWIN, "--mode=slow:0", "--delay=0.05",
+                    "--mode=irreversible:%7=0", "--mode=init_failed:%11=4",
+                    "--mode=x0_ignored", "--irreversible-hour=2", "--no-stamp"],
+        "env": {"PYTHONPATH": str(ROOT / "src")}}}
+    cfg["testing"] = {"alpha": 0.05, "correction": "holm", "failed_runs": "conservative",
+                      "methods": FAILING_TWIN_METHODS}
+    return cfg
+
+
+def build_failing_twin_study(work: Path) -> None:
+    """A clean run of ``failing_twin_config()`` in ``work`` (config ``work/study.yaml``),
+    every output built."""
+    (work / "study.yaml").write_text(yaml.safe_dump(failing_twin_config()))
+    run = run_snakemake(work, work / "study.yaml", "--cores", "2")
+    assert run.returncode == 0, run.stderr[-3000:]

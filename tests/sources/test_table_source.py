@@ -10,6 +10,7 @@ table gives byte-for-byte the synthetic study's results.
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ import pandas as pd
 import pytest
 import yaml
 from helpers.paths import BAD_INPUTS, ROOT
-from helpers.workflow import run_snakemake
+from helpers.workflow import copy_study, run_snakemake
 
 from twinfalsify.schema import ContractError, validate_trajectories
 from twinfalsify.sources.synthetic import generate
@@ -174,24 +175,28 @@ def _tree(folder: Path) -> dict[str, bytes]:
 
 @pytest.mark.slow
 def test_study_on_the_exported_table_equals_the_synthetic_study_byte_for_byte(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, test_study
 ):
     """config/test.yaml's study with the builtin twin a table source can use (fitted), once
     on the synthetic world and once on its trajectories exported as a CSV table: every
     result, table, figure and the summary are equal byte for byte. Apart: what only the
     synthetic world has (its confounding figure, which needs the true interventional law),
     the twin context, which records the source, and the trajectory tables, which carry the
-    table's subject_id column and are otherwise equal."""
+    table's subject_id column and are otherwise equal.
+
+    The synthetic study continues a copy of the shared config/test.yaml study
+    (``test_study``: every step before the twins is the same; its two builtin twins, which a
+    table source cannot run, are removed from the copy); the table study runs from scratch."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "0")  # PDFs carry no creation time
     base = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
-    # fewer stays and runs than config/test.yaml: every rule still runs, on less data
-    base["source"]["synthetic"]["n_stays"] = 800
-    base["twin_runs"]["runs_per_sequence"] = 100
     # a served twin on a table source: the tutorial's command twin (test_tutorial_own_twin);
     # served = in-process for builtin twins: test_twin_integration_workflow
     base["twins"] = {"fitted": {"kind": "fitted"}}
     table = tmp_path / "table" / "trajectories.csv"
     write_table(to_table(generate(base["source"]["synthetic"], seed=base["seed"])), table)
+    copy_study(test_study[0], tmp_path / "synthetic")
+    for twin in yaml.safe_load(test_study[1].read_text())["twins"]:
+        shutil.rmtree(tmp_path / "synthetic" / "results" / base["study"] / "twins" / twin)
     trees = {}
     for name, source in (("synthetic", base["source"]),
                          ("table", {"kind": "table", "table": {"path": str(table)}})):

@@ -34,7 +34,7 @@ import pytest
 import yaml
 from fakes import FAULTY_TWIN
 from helpers.paths import ROOT
-from helpers.workflow import copy_repo
+from helpers.workflow import copy_repo, copy_study
 
 from twinfalsify import provenance
 
@@ -77,25 +77,25 @@ def n_jobs(jobs: dict[str, list[str]]) -> int:
 
 
 @pytest.fixture(scope="module")
-def study(tmp_path_factory):
-    """A finished study (repo copy, work folder, config) with the command twin 'ext'."""
+def study(tmp_path_factory, test_study):
+    """A finished study (repo copy, work folder, config) with the command twin 'ext':
+    config/test.yaml with its oracle served over the twin protocol and 'ext' added, run from
+    the repository copy on a copy of the finished config/test.yaml study (conftest's
+    ``test_study``): what that study built and this config keeps (every step before the twins,
+    the in-process biased twin) is up to date, so the served oracle, 'ext' and the summary
+    run here. ``build.log`` beside the config holds every rule that ran, in both runs."""
     from twinfalsify.runs.plan import TwinPlan
 
     tmp = tmp_path_factory.mktemp("reruns")
     repo = tmp / "repo"
     copy_repo(repo)
-    work = tmp / "work"
-    (work / "twin").mkdir(parents=True)
+    work = copy_study(test_study[0], tmp / "work")
+    (work / "twin").mkdir()
     shutil.copy(FAULTY_TWIN[1], work / "twin" / "faulty_twin.py")
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
-    cfg["twin_runs"].update(runs_per_sequence=60, n_shards=2)
+    assert cfg["twin_runs"]["n_shards"] == 2
     cfg["twins"]["oracle"] = {"kind": "oracle", "protocol": True, "workers": 1,
                               "timeout_s": 60, "retries": 1}
-    config = tmp / "study.yaml"
-    config.write_text(yaml.safe_dump(cfg))
-    done = _snakemake(repo, work, config, f"results/{cfg['study']}/twin_plan.json")
-    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
-    log = done.stdout + done.stderr
     plan = TwinPlan.from_json(yaml.safe_load(
         (work / "results" / cfg["study"] / "twin_plan.json").read_text()))
     seeds = plan.run_seeds()
@@ -104,10 +104,14 @@ def study(tmp_path_factory):
     cfg["twins"]["ext"] = {"kind": "command",
                            "command": f"python twin/faulty_twin.py --mode=init_failed:{first}",
                            "workers": 1, "timeout_s": 30, "fail_fast_runs": 3}
+    config = tmp / "study.yaml"
     config.write_text(yaml.safe_dump(cfg))
     done = _snakemake(repo, work, config)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
-    (tmp / "build.log").write_text(log + done.stdout + done.stderr)  # every rule that ran
+    assert "rule trajectories:" not in done.stdout + done.stderr  # the shared study's
+    # every rule that ran: the shared study's build, then this one
+    (tmp / "build.log").write_text((test_study[0] / "build.log").read_text()
+                                   + done.stdout + done.stderr)
     return repo, work, config, cfg, patient
 
 
