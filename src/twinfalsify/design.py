@@ -158,6 +158,14 @@ def fit_state_bins(d0: pd.DataFrame, outcomes=OUTCOMES, t_max: int = T_MAX) -> S
     return StateBins(edges, medians)  # type: ignore[arg-type]
 
 
+def subgroup_parts(code: int) -> tuple[int, int, int]:
+    """(sex, age quartile 0-3, outcome above its D0 median 0/1) of a B code, the inverse of
+    ``8 sex + 2 age_quartile + above`` (:meth:`StateBins.base_codes`, :func:`state_codes`);
+    not defined for ``WHOLE_SPACE``."""
+    code = int(code)
+    return code // 8, (code % 8) // 2, code % 2
+
+
 def state_codes(x: np.ndarray, bins: StateBins, outcome: str) -> np.ndarray:
     """B codes (n, t_max + 1) of trajectories x (n, t_max + 1, F) for one outcome."""
     base = bins.base_codes(x[:, 0, :])

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, ActionBins, StateBins
+from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, ActionBins, StateBins, subgroup_parts
 from twinfalsify.inference.multiple_testing import thresholds_within
 from twinfalsify.io import read_json, read_parquet
 from twinfalsify.schema import FEATURE_BY_NAME, ContractError
@@ -65,8 +65,7 @@ def subgroup_in_words(codes: Sequence[int], outcome: str, states: StateBins) -> 
     """The B-sets B_0..B_t as patients: sex, age quartile, outcome vs the D0 median."""
     if all(int(c) == WHOLE_SPACE for c in codes):
         return ["every patient (Manski bounds: no subgroup)"]
-    base = int(codes[0]) - int(codes[0]) % 2
-    sex, age_q = base // 8, (base % 8) // 2
+    sex, age_q, _ = subgroup_parts(codes[0])
     edges = states.age_edges
     # quartile by searchsorted(..., side="right"): [e_{q-1}, e_q)
     age = (f"age < {_num(edges[0])}" if age_q == 0 else f"age >= {_num(edges[-1])}"

@@ -16,7 +16,7 @@ import pandas as pd  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE  # noqa: E402
+from twinfalsify.design import N_DOSE_BINS, WHOLE_SPACE, subgroup_parts  # noqa: E402
 from twinfalsify.io import write_atomic  # noqa: E402
 from twinfalsify.schema import OUTCOMES  # noqa: E402
 
@@ -210,9 +210,8 @@ def patients_in_brief(outcome: str, bins) -> str:
     or at or below (-) the D0 median at hours 0..t."""
     if all(int(b) == WHOLE_SPACE for b in bins):
         return "every patient"
-    base = int(bins[0]) - int(bins[0]) % 2
-    sex, age_q = base // 8, (base % 8) // 2
-    signs = "".join("+" if int(b) % 2 else "-" for b in bins)
+    sex, age_q, _ = subgroup_parts(bins[0])
+    signs = "".join("+" if subgroup_parts(b)[2] else "-" for b in bins)
     return (f"{'female' if sex else 'male'}, {ORDINALS[age_q]} age quartile, {outcome} vs "
             f"D0 median at hours 0-{len(bins) - 1}: {signs}")
 

@@ -161,8 +161,9 @@ def figure_facts(study_dir: str | Path, twin: str = FIGURE_TWIN) -> dict:
     for method in sorted(res["method"].unique(), key=lambda m: (
             METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m)):
         part = res[(res["method"] == method) & res["rejected"]]
+        hit = set(part["hyp_id"])
         rejected[method] = [int(t) for t, h in zip(frame["t"], path, strict=True)
-                            if h is not None and h in set(part["hyp_id"])]  # fmt: skip
+                            if h is not None and h in hit]  # fmt: skip
         sides |= set(part.loc[part["hyp_id"].isin([h for h in path if h is not None]),
                               "side"])  # fmt: skip
     place = ["below" if tw < lo else "above" if tw > up else "inside"
@@ -182,8 +183,7 @@ def _hours(hours: list[int]) -> str:
     """'1', '1 and 2', '1-4', '1, 3 and 4'."""
     if len(hours) >= 3 and hours == list(range(hours[0], hours[-1] + 1)):
         return f"{hours[0]}-{hours[-1]}"
-    words = [str(h) for h in hours]
-    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+    return _and([str(h) for h in hours])
 
 
 def _and(words: list[str]) -> str:
@@ -209,20 +209,18 @@ def _doses(actions: list[int]) -> str:
 def _patients(outcome: str, bins: list[int]) -> str:
     """The B-sets in words, with their codes: 'patients of subgroup B = 7 at hours 0-4 (male,
     4th age quartile, Calcium above its D0 median)'."""
-    from twinfalsify.design import WHOLE_SPACE
+    from twinfalsify.design import WHOLE_SPACE, subgroup_parts
     from twinfalsify.figures import ORDINALS
 
     span = f"hours 0-{len(bins) - 1}" if len(bins) > 1 else "hour 0"
     if all(b == WHOLE_SPACE for b in bins):
         return "every patient (Manski bounds: B = the whole space)"
-    base = bins[0] - bins[0] % 2
-    sex, age_q = base // 8, (base % 8) // 2
+    sex, age_q, above = subgroup_parts(bins[0])
     who = f"{'female' if sex else 'male'}, {ORDINALS[age_q]} age quartile"
-    above = {b % 2 for b in bins}
     if len(set(bins)) == 1:
         return (f"patients of subgroup B = {bins[0]} at {span} ({who}, {outcome} "
-                f"{'above' if above == {1} else 'at or below'} its D0 median)")
-    signs = "".join("+" if b % 2 else "-" for b in bins)
+                f"{'above' if above else 'at or below'} its D0 median)")
+    signs = "".join("+" if subgroup_parts(b)[2] else "-" for b in bins)
     codes = ", ".join(map(str, bins))
     return (f"patients of subgroups B_0:{len(bins) - 1} = {codes} ({who}, {outcome} above (+) "
             f"or at or below (-) its D0 median at {span}: {signs})")

@@ -121,3 +121,16 @@ def test_restrict_hypotheses_keeps_exactly_the_listed_prefixes(data):
     assert (rep["kept"] + rep["dropped_outside_design"]).sum() == report["kept"].sum()
     with pytest.raises(ContractError, match="no hypothesis left"):
         design.design_on_d0(d0, min_support=10, sequences=[[24, 24, 24, 24]], horizon=1)
+
+
+def test_subgroup_parts_inverts_the_codes_of_state_codes():
+    from twinfalsify.design import StateBins, subgroup_parts
+
+    bins = StateBins(age_edges=(40.0, 55.0, 70.0), medians={"HR": (90.0,)})
+    for sex in (0, 1):
+        for age, q in ((30.0, 0), (40.0, 1), (60.0, 2), (70.0, 3)):  # edges: right side
+            x0 = np.zeros(len(FEATURES))
+            x0[FEATURES.index("sex")], x0[FEATURES.index("age")] = sex, age
+            for hr, above in ((90.0, 0), (90.5, 1)):  # a tie with the median is not above
+                code = int(bins.base_codes(x0)) + int(bins.above("HR", np.array(hr), 0))
+                assert subgroup_parts(code) == (sex, q, above)

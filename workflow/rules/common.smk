@@ -24,18 +24,20 @@ if _checkout_src is not None and (_checkout_src / "twinfalsify").is_dir():
 else:
     _init = Path(workflow.source_path("../../src/twinfalsify/__init__.py")).read_text()
     WORKFLOW_VERSION = re.search(r'__version__ = "([^"]+)"', _init).group(1)
+    _install = (
+        f"pip install 'twinfalsify @ git+<the repository URL>@v{WORKFLOW_VERSION}'"
+    )
     try:
         import twinfalsify
     except ImportError:
         raise ValueError(
-            f"this workflow (twinfalsify {WORKFLOW_VERSION}) needs its library: "
-            f"pip install 'twinfalsify @ git+<the repository URL>@v{WORKFLOW_VERSION}'"
+            f"this workflow (twinfalsify {WORKFLOW_VERSION}) needs its library: {_install}"
         ) from None
     if twinfalsify.__version__ != WORKFLOW_VERSION:
         raise ValueError(
             f"this workflow is twinfalsify {WORKFLOW_VERSION} but the installed library is "
             f"{twinfalsify.__version__}: install the library of the workflow's tag "
-            f"(pip install 'twinfalsify @ git+<the repository URL>@v{WORKFLOW_VERSION}')"
+            f"({_install})"
         )
 import twinfalsify  # noqa: E402
 

@@ -673,7 +673,10 @@ def round_half_up(x: pd.Series, decimals: int) -> pd.Series:
             return v
         return float(Decimal(format(v, ".15g")).quantize(step, rounding=ROUND_HALF_UP))
 
-    return x.map(one).astype(float)
+    uniq = pd.unique(x.to_numpy(float))  # few distinct rates among many rows
+    return x.map(dict(zip(uniq, map(one, uniq), strict=True))).astype(float)
+
+
 SOFA_ORGANS = ("respiration", "coagulation", "liver", "cardiovascular", "cns", "renal")
 
 
