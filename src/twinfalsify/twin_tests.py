@@ -185,7 +185,7 @@ def stored_pvalues(results: pd.DataFrame, hyp_ids: np.ndarray, methods: list[str
                    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per method, (p_lo, p_up) of a results table in the order of ``hyp_ids``; one error
     when a (hypothesis, side, method) is missing or listed twice."""
-    p = results.set_index(["method", "side", "hyp_id"])["p_value"]
+    p = results.set_index(["method", "side", "hyp_id"])["p_value"].sort_index()
     if not p.index.is_unique:
         raise ContractError("results: a (method, side, hyp_id) is listed twice")
     out = {}
