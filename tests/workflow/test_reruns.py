@@ -82,8 +82,8 @@ def study(tmp_path_factory, test_study):
     config/test.yaml with its oracle served over the twin protocol and 'ext' added, run from
     the repository copy on a copy of the finished config/test.yaml study (conftest's
     ``test_study``): what that study built and this config keeps (every step before the twins,
-    the in-process biased twin) is up to date, so the served oracle, 'ext' and the summary
-    run here. ``build.log`` beside the config holds every rule that ran, in both runs."""
+    the in-process biased twin) is up to date, so this run builds the served oracle, 'ext'
+    and the summary. ``build.log`` beside the config holds every rule that ran, in both runs."""
     from twinfalsify.runs.plan import TwinPlan
 
     tmp = tmp_path_factory.mktemp("reruns")
