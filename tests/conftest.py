@@ -104,23 +104,30 @@ def reference_runs(tmp_path_factory):
 
 # The files whose tests take longest (CPU or waiting), started first so that no worker is left
 # with a long file at the end while the other idles (longest-first scheduling); the rest keep
-# their order. From `--cpu-report` and `--durations` of a full run. Paths are relative to tests/.
+# their order (pytest_configure below keeps pytest-xdist from reordering the files). From
+# `--cpu-report` and `--durations` of a full run. Paths are relative to tests/.
 LONG_FIRST = (
-    "workflow/test_reruns.py",
-    "inference/test_sequential.py",
-    "runs/test_twin_check.py",
-    "workflow/test_slurm.py",
+    "workflow/test_reruns.py",  # builds test_study first, then its own study on a copy
+    "runs/test_twin_check.py",  # mostly waiting for twins that hang or start slowly
+    "workflow/test_slurm.py",  # mostly waiting for the Slurm cluster
     "workflow/test_tutorial_own_twin.py",
     "sources/test_table_source.py",
+    "core/test_one_path.py",  # builds failing_twin_study
     "workflow/test_twin_integration_workflow.py",
-    "runs/test_adaptive.py",
-    "workflow/test_figures_workflow.py",
     "workflow/test_resume.py",
+    "runs/test_adaptive.py",
     "sources/mimic3/test_mimic3_causality.py",
     "sources/mimic3/test_mimic3_staging.py",
+    "workflow/test_command_twin_reproducible.py",  # after test_one_path: its study is built
+    "runs/test_failfast.py",
+    "sources/meds/test_meds.py",
     "sources/mimic4/test_mimic4.py",
-    "workflow/test_bad_inputs.py",
     "pulse/test_pulse_demo_study.py",
+    "workflow/test_self_writing_twin.py",
+    "inference/test_sequential.py",
+    "workflow/test_bad_inputs.py",
+    "workflow/test_mimic3_workflow.py",
+    "workflow/test_module_deploy.py",
 )
 
 
@@ -160,6 +167,14 @@ SLOW_UNIT_TESTS = (
     "runs/test_twin_runner.py::test_retry_then_success",
     "runs/test_twin_runner.py::test_same_results_for_one_or_two_workers_and_any_input_order",
 )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # pytest-xdist 3 hands the files out by their number of tests, most first, unless told
+    # otherwise (its --loadscope-reorder, on by default): that would undo LONG_FIRST (the
+    # collection's order, set below), so the collection's order is kept
+    if getattr(config.option, "loadscopereorder", None):
+        config.option.loadscopereorder = False
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m "not slow"` deselects

@@ -101,10 +101,12 @@ def failing_twin_config() -> dict:
     """config/test.yaml with one command twin (tests/fakes/faulty_twin.py) that fails about
     one run in five (irreversible in hour 2, or refusing X_0) and starts the others from one
     fixed patient whatever their X_0 (so subgroups are rejected), under
-    ``failed_runs: conservative`` with three methods. Its timed probe runs (seeds 0, 1, 2;
-    no study run has so small a seed) include one slowed down (``slow:0``): a measured time
-    that varies between runs, which must stay out of the result files; its answers carry no
-    pid or time (``--no-stamp``), so a failed run's message is the same in every run."""
+    ``failed_runs: conservative`` with three methods (200 runs per sequence: fewer reject
+    nothing) and a sensitivity sweep of two widenings (Delta = 0, which is checked, among
+    them). Its timed probe runs (seeds 0, 1, 2; no study run has so small a seed)
+    include one slowed down (``slow:0``): a measured time that varies between runs, which
+    must stay out of the result files; its answers carry no pid or time (``--no-stamp``),
+    so a failed run's message is the same in every run."""
     from fakes import FAULTY_TWIN
 
     cfg = yaml.safe_load(BASE_CONFIG.read_text())
@@ -118,6 +120,7 @@ def failing_twin_config() -> dict:
         "env": {"PYTHONPATH": str(ROOT / "src")}}}
     cfg["testing"] = {"alpha": 0.05, "correction": "holm", "failed_runs": "conservative",
                       "methods": FAILING_TWIN_METHODS}
+    cfg["figures"] = {"sensitivity": {"deltas": [0.0, 0.05]}}  # Delta = 0 is what is checked
     return cfg
 
 

@@ -14,7 +14,7 @@ import yaml
 from helpers.paths import ROOT
 
 TINY = {
-    "replicates": 2, "chunks": 2, "n_stays": 1000, "d0_fraction": 0.2, "min_support": 10,
+    "replicates": 4, "chunks": 2, "n_stays": 1000, "d0_fraction": 0.2, "min_support": 10,
     "runs_per_sequence": 150, "bias_sizes": [0.0, 8.0], "coverage_per_replicate": 2,
     "coverage_population": 15000, "coverage_min_inside": 100,
     "methods": {"hoeffding": {}, "bootstrap": {"n_resamples": 50}, "betting": {}, "bernstein": {}},
@@ -56,7 +56,7 @@ def test_calibration_target_writes_table_figures_summary_and_reruns_on_config_ed
     assert {"method", "kind", "bias", "any_rejection_rate", "ci_low", "ci_high"} <= set(
         table.columns
     )
-    assert set(table["bias"]) == {0.0, 8.0} and (table["replicates"] == 2).all()
+    assert set(table["bias"]) == {0.0, 8.0} and (table["replicates"] == 4).all()
     for f in ("power.png", "power.pdf", "coverage.png", "coverage.pdf"):
         assert (out / "figures" / f).stat().st_size > 0
     assert "Family-wise error of the oracle twin" in (out / "summary.md").read_text()
@@ -65,7 +65,7 @@ def test_calibration_target_writes_table_figures_summary_and_reruns_on_config_ed
     assert len(seq) == 4 and seq["hours_ratio"].between(0, 1, inclusive="right").all()
     assert (seq[seq["bias"] == 0]["mean_rejections"] == 0).all()
     adaptive = pd.read_csv(out / "adaptive.csv")
-    assert sorted(adaptive["bias"]) == [0.0, 8.0] and (adaptive["replicates"] == 2).all()
+    assert sorted(adaptive["bias"]) == [0.0, 8.0] and (adaptive["replicates"] == 4).all()
     assert "## Adaptive twin runs" in (out / "summary.md").read_text()
     assert snakemake(work, "-n", "calibration").stdout.count("rule calibration_chunk") == 0
     (work / "config" / "calibration.yaml").write_text(yaml.safe_dump({**TINY, "seed": 5}))

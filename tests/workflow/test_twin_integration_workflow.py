@@ -14,6 +14,7 @@ import pytest
 import yaml
 from fakes import FAULTY_TWIN
 from helpers.paths import ROOT
+from helpers.workflow import copy_study
 
 pytestmark = pytest.mark.slow
 
@@ -38,23 +39,30 @@ def _config(tmp_path: Path, twins: dict, **runs) -> Path:
     return path
 
 
-def test_served_builtin_twin_gives_the_in_process_results(tmp_path):
-    config = _config(tmp_path, {
-        "local": {"kind": "biased", "shift": {"HR": 25.0}},
-        "served": {"kind": "biased", "shift": {"HR": 25.0}, "protocol": True, "workers": 2,
-                   "timeout_s": 30},
-    }, runs_per_sequence=60)  # fmt: skip
+def test_served_builtin_twin_gives_the_in_process_results(tmp_path, test_study):
+    """config/test.yaml's biased twin served over the twin protocol (2 workers) beside the
+    in-process one: the same runs and results, bit for bit. The in-process twin's are those
+    of the shared config/test.yaml study (``test_study``), which this config continues on a
+    copy: only the served twin runs."""
+    work = copy_study(test_study[0], tmp_path / "study")
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    local = cfg["twins"]["biased"]
+    cfg["twins"] = {"biased": local, "served": {**local, "protocol": True, "workers": 2,
+                                                 "timeout_s": 30}}
+    config = work / "served.yaml"
+    config.write_text(yaml.safe_dump(cfg))
     # only what is compared: tables and figures (the sensitivity sweep above all) add minutes
-    out = tmp_path / "results" / "test" / "twins"
-    targets = [str((out / t / f).relative_to(tmp_path))
-               for t in ("local", "served") for f in ("runs.parquet", "results.parquet")]
-    run = _run(tmp_path, config, "--cores", "2", *targets)
+    out = work / "results" / "test" / "twins"
+    targets = [str((out / t / f).relative_to(work))
+               for t in ("biased", "served") for f in ("runs.parquet", "results.parquet")]
+    run = _run(work, config, "--cores", "2", *targets)
     assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stderr.count("rule twin_shard:") == cfg["twin_runs"]["n_shards"]  # served's
     # the served twin's shard jobs were given both cores
     assert "threads: 2" in run.stderr
-    runs = [pd.read_parquet(out / t / "runs.parquet") for t in ("local", "served")]
+    runs = [pd.read_parquet(out / t / "runs.parquet") for t in ("biased", "served")]
     pd.testing.assert_frame_equal(*runs, check_exact=True)
-    res = [pd.read_parquet(out / t / "results.parquet") for t in ("local", "served")]
+    res = [pd.read_parquet(out / t / "results.parquet") for t in ("biased", "served")]
     pd.testing.assert_frame_equal(*res, check_exact=True)
     assert (res[0]["p_value"] < 0.5).any()  # informative tests, not all p = 1
 
