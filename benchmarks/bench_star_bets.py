@@ -24,9 +24,10 @@ order), so the ratios measure the bets, not the orders.
   201 points on [0, 1], then 100 points inside the cell before the first point not rejected
   (resolution 5e-5; a point not rejected in an earlier cell between coarse points would be
   missed: the capital need not be monotone in m).
-- ``plugin``: the library's default, WSR plug-in bets, c = 0.9, running maximum.
+- ``plugin``: the library's ``bets: plugin``, WSR plug-in bets, c = 0.9, running maximum.
 - ``wsr-c0.5``: the same bets truncated at c = 1/2 (WSR's suggestion).
-- ``star``: the library's ``bets: star`` (``inference.betting`` module doc, "STaR bets").
+- ``star``: the library's default, ``bets: star`` (``inference.betting`` module doc, "STaR
+  bets").
 - ``hoeffding``: mean - sqrt(log(2/alpha) / (2 n)).
 """
 
@@ -44,8 +45,8 @@ from twinfalsify.inference.betting import (
     C_TRUNC,
     capital_bound,
     ordered_sides,
-    star_side,
 )
+from twinfalsify.inference.capital import OrderedSide
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 DISTRIBUTIONS = {  # name: (draw(rng, shape), mean)
@@ -96,14 +97,15 @@ def lower_bounds(x: np.ndarray, alpha: float) -> tuple[np.ndarray, dict[str, np.
     """(x in the data order, {method: lower bound}) for every row of x."""
     r, n = x.shape
     delta = alpha / 2
-    tw = ordered_sides(_samples(x), delta, order="data")[2]
+    st = ordered_sides(_samples(x), delta, order="data", star=True)[2]
+    tw = OrderedSide(st.x, st.lam, st.offsets)  # the same values with plug-in bets
     xo = tw.x.reshape(x.shape)
     lev = np.full(r, math.log(1 / delta))
     out = {
         "star-det": star_deterministic(xo, delta),
         "plugin": capital_bound(tw, lev, +1, True, C_TRUNC),
         "wsr-c0.5": capital_bound(tw, lev, +1, True, 0.5),
-        "star": capital_bound(star_side(tw, np.full(r, delta)), lev, +1, True, C_TRUNC),
+        "star": capital_bound(st, lev, +1, True, C_TRUNC),
         "hoeffding": x.mean(axis=1) - math.sqrt(math.log(1 / delta) / (2 * n)),
     }
     return xo, out

@@ -81,7 +81,8 @@ def run_tests(
     })  # fmt: skip
     parts = []
     for name, method in methods.items():
-        p_lo, p_up = failure_pvalues(method, samples, np.asarray(n_failed), failed_runs)
+        p_lo, p_up = failure_pvalues(method, samples, np.asarray(n_failed), failed_runs,
+                                     families=hyps["kind"].to_numpy())
         for side, p in (("lo", p_lo), ("up", p_up)):
             part = base.copy()
             part.insert(4, "side", side)

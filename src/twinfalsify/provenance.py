@@ -274,7 +274,7 @@ def code_scope(config: dict, all_methods: bool = False) -> tuple[list[str], list
 
 
 #: the packages whose versions a study's summary lists (its "Software" table)
-SOFTWARE = ("twinfalsify", "snakemake", "numpy", "pandas", "scipy", "pyarrow", "duckdb",
+SOFTWARE = ("twinfalsify", "snakemake", "numpy", "numba", "pandas", "scipy", "pyarrow", "duckdb",
             "matplotlib", "seaborn")
 
 

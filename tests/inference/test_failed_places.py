@@ -128,6 +128,63 @@ def test_running_max_in_place_matches_a_brute_force_loop_and_dominates():
             assert got_lo <= true_lo + 1e-12 and got_up <= true_up + 1e-12
 
 
+def _brute_star_capital(x_plan, failed, perm, delta0, m, sign, worst):
+    """As :func:`_brute_capital` with target-recalculating bets: the variance of the
+    successful values before each place, the places left n_c - i + 1 and the capital so far
+    (``capital.star_log_capital``'s formula); K- as K+ of 1 - x at 1 - m."""
+    c, r0, big_r = 0.9, 0.5, math.log(1 / delta0)
+    xs, fs = x_plan[perm], failed[perm]
+    n_c = len(xs)
+    mm = m if sign > 0 else 1 - m
+    seen: list[float] = []
+    mus: list[float] = []
+    logk, best = 0.0, 0.0
+    for i, (x, f) in enumerate(zip(xs, fs, strict=True)):
+        k = len(seen)
+        s2 = (0.25 + sum((v - mu) ** 2 for v, mu in zip(seen, mus, strict=True))) / (k + 1)
+        need = big_r - logk
+        b = math.sqrt(2 * max(need, r0) / ((n_c - i) * min(s2, mm * (1 - mm))))
+        b = min(b * math.exp(min(need - r0, 0.0)), c / mm)
+        v = worst if (f and worst is not None) else x
+        if not (f and worst is None and np.isnan(x)):  # a failed run that does not enter
+            logk += math.log1p(b * ((v if sign > 0 else 1 - v) - mm))
+        best = max(best, logk)
+        if not f:
+            seen.append(x)
+            mus.append((0.5 + sum(seen)) / (len(seen) + 1))
+    return best
+
+
+def test_star_bets_in_place_match_a_brute_force_loop_and_dominate():
+    """STaR bets with failed runs in place: equal to a plain loop, and at most the capital of
+    any completion (not entering, or any value in [0, 1]) scored with the same variances.
+    The bets also read the capital so far; the dominance holds because the next capital is
+    non-decreasing in the capital so far (``betting`` module doc, "STaR bets", (a))."""
+    rng = np.random.default_rng(14)
+    x = rng.beta(2, 5, 60)
+    failed = np.zeros(60, bool)
+    failed[[0, 3, 17, 18, 40, 59]] = True
+    x_obs = np.where(failed, np.nan, x)
+    s = _placed([x_obs], [failed])
+    perm = _order_keys(np.array([60]), s.hyp_keys, np.zeros(1, np.int64), None, 2)
+    for delta0 in (0.005, 0.2):  # 0.2: the capital passes its target (the exponential part)
+        tw_lo, tw_up = worst_twin_sides(s, delta0, order="data", star=True)
+        for m in (0.05, 0.15, 0.3, 0.45, 0.7):
+            got_lo = log_capital(tw_lo, np.array([m]), -1)[0]
+            got_up = log_capital(tw_up, np.array([m]), +1)[0]
+            assert got_lo == pytest.approx(_brute_star_capital(
+                x_obs, failed, perm, delta0, m, -1, 1.0), rel=1e-10, abs=1e-12)
+            assert got_up == pytest.approx(_brute_star_capital(
+                x_obs, failed, perm, delta0, m, +1, 0.0), rel=1e-10, abs=1e-12)
+            for _ in range(20):
+                comp = np.where(failed, np.where(rng.random(60) < 0.5, np.nan,
+                                                 rng.random(60)), x)
+                assert got_lo <= _brute_star_capital(comp, failed, perm, delta0, m, -1,
+                                                     None) + 1e-12
+                assert got_up <= _brute_star_capital(comp, failed, perm, delta0, m, +1,
+                                                     None) + 1e-12
+
+
 def test_without_failed_runs_the_order_and_p_values_do_not_change():
     """No failed run: the same p-values with or without the places (bit for bit)."""
     rng = np.random.default_rng(5)

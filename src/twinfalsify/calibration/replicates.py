@@ -25,7 +25,6 @@ from twinfalsify.calibration.config import (
     CalibrationConfig,
 )
 from twinfalsify.falsify import make_methods, outcome, run_tests
-from twinfalsify.inference.betting import default_tune_alpha
 from twinfalsify.inference.multiple_testing import correct
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 from twinfalsify.inference.sequential import (
@@ -129,11 +128,9 @@ def welch_pvalues(samples: HypothesisSamples) -> np.ndarray:
     return p
 
 
-def _methods(cfg: CalibrationConfig, n_hyps: int, seed: int):
+def _methods(cfg: CalibrationConfig, seed: int):
     spec = {k: dict(v or {}) for k, v in cfg.methods.items()}
-    if "betting" in spec:
-        spec["betting"].setdefault("tune_alpha", default_tune_alpha(n_hyps, cfg.alpha))
-    return make_methods(spec, seed, alpha=cfg.alpha)
+    return make_methods(spec, seed, alpha=cfg.alpha)  # betting: tuned per family (run_tests)
 
 
 def fixed_results(cfg: CalibrationConfig, rep: Replicate, bias: float) -> tuple[
@@ -143,7 +140,7 @@ def fixed_results(cfg: CalibrationConfig, rep: Replicate, bias: float) -> tuple[
     nodes = shifted_nodes(rep, bias, tuple(cfg.bias_features))
     samples, n_failed = twin_samples(rep.hyps, rep.obs, nodes, rep.states)
     res = run_tests(
-        rep.hyps, samples, n_failed, _methods(cfg, len(rep.hyps), rep.seed),
+        rep.hyps, samples, n_failed, _methods(cfg, rep.seed),
         alpha=cfg.alpha, correction=cfg.correction,
     )  # fmt: skip
     return res, samples

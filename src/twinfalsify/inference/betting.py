@@ -40,7 +40,7 @@ Validity: under H_lo (Q_twin >= Q_lo) any such m is either >= Q_lo (then
 K+_lo(Q_lo) >= 2/alpha, probability <= alpha/2) or < Q_twin (then K-_twin(Q_twin) >=
 2/alpha, probability <= alpha/2).
 
-Order ("plugin" bets, the default). The bound depends on the order of the sample; the
+Order (plug-in and STaR bets). The bound depends on the order of the sample; the
 argument above needs only that the sequence be i.i.d., i.e. that the order not depend on the
 values. ``order: data`` (default) takes it from the data's content (``inference.order``):
 
@@ -96,47 +96,54 @@ best bet by at most a factor sqrt(r); a best bet outside the grid (variance belo
 1/(4 r^(2(J-1))), or a gap needing a bet below lambda_min) costs more, without bound.
 Measured in docs/reference/benchmarks.md.
 
-STaR bets ("star"). Target-recalculating bets after STaR-Bets (Voracek & Orabona 2025): in
-the same data order, each bet is sized so that the values left could still raise the
-capital to the target 1/delta0 (its own capital at m so far), at the current variance:
+STaR bets ("star", the default). Target-recalculating bets after STaR-Bets (Voracek &
+Orabona 2025): in the same data order, each bet is sized so that the values left could still
+raise the capital to the target 1/delta0 (its own capital at m so far), at the current
+variance:
 
-    b_i(m) = min( sqrt(2 max(R - log K+_{i-1}(m), r0) / ((n - i + 1) S_i(m))), c / m ),
-    S_i(m) = min(sigma2_{i-1}, m (1 - m)),   R = log(1/delta0),   r0 = 1/2,
+    b_i(m) = min( sqrt(2 max(r_i, r0) / ((n - i + 1) S_i(m))) exp(min(r_i - r0, 0)), c / m ),
+    r_i = R - log K+_{i-1}(m),   S_i(m) = min(sigma2_{i-1}, m (1 - m)),
+    R = log(1/delta0),   r0 = 1/2,
 
 sigma2_{i-1} the plug-in variance above (K- mirrored: 1 - x at 1 - m). In a Gaussian
 approximation n' values at bet b and variance S grow log K by n' (b gap - b^2 S / 2), whose
 largest value reaches a remaining need r exactly when b = sqrt(2 r / (n' S)); WSR's bet is
 this with r = R and n' = n throughout. m (1 - m) is the largest variance of a value in
-[0, 1] with mean m, the cap STaR-Bets put on S. Differences to STaR-Bets' code: the plug-in
-variance around the running mean (theirs: the second moment about m, plus a prior term),
-the truncation c < 1, the running maximum (theirs: the terminal capital, which their bet
-freezes at the target) and the floor r0 on the need.
+[0, 1] with mean m, the cap STaR-Bets put on S. Below a need of r0 the bet decays as
+exp(r_i - r0) where STaR-Bets' goes as sqrt(r_i) to 0 (their bet freezes at the target):
+the same slope at r0, and the steepest decay that keeps the capital monotone in m (below).
+Other differences to STaR-Bets' code: the plug-in variance around the running mean (theirs:
+the second moment about m, plus a prior term), the truncation c < 1 and the running maximum
+(theirs: the terminal capital).
 Validity: b_i(m) reads x_1..x_{i-1}, n, delta0 and m only, so for a true mean <= m every
 factor has conditional mean 1 + b_i (mean - m) <= 1 and K+ is a non-negative supermartingale
 (every factor >= 1 - c > 0): Ville's inequality applies as above.
 Monotonicity in m (what the crossing and the bound search need): write log K_i = h(log
-K_{i-1}, m), h(l, m) = l + log(1 + b(l, m) (x - m)). (a) h is non-decreasing in l: where the
-square root binds with need r = R - l > r0, d b / d l = -b / (2 r) >= -b since r >= 1/2, so
-d h / d l = (1 + (x - m) (b + d b / d l)) / (1 + b (x - m)) >= 0 for x >= m; for x < m, d b
-/ d l <= 0 helps; where c/m or the floor binds b does not depend on l. (b) h is
-non-increasing in m at fixed l: d h / d m has the sign of (d b / d m) (x - m) - b, and b is
-S^(-1/2) times a constant, with d log S / d m = 0 (sigma2) or 1/m - 1/(1 - m) (m (1 - m)),
-or c/m: so -1/m <= d log b / d m <= 1/(1 - m), which gives (d b / d m) (x - m) <= b for
-every x in [0, 1]. By induction on i, log K+_i(m) is non-increasing in m for every i, and so
-is its running maximum (K- non-decreasing). Without the floor (a) fails near the target (the
-bet's derivative in l is unbounded there) and the capital need not be monotone in m; the
-floor costs its need of 1/2 nat at most near the target. The bets depend on the tuning level
-delta0 through the target only, so, as for the plug-in bets, the p-value p = 2 / K* is valid
-at every level, and Holm's decisions at levels other than delta0's use capitals aimed at
-1/delta0. Failed runs are not placed (``failed_runs: conservative`` evaluates appended
-completions, as for the order-free mixture, which ``inference.failures``' argument covers for
-symmetric methods only: with failed runs use plug-in bets). Measured width: 0.91-1.03x
-deterministic STaR-Bets (plug-in bets 0.94-1.26x), above 1.02x for Bernoulli(1/2) at
-alpha = 0.05, n <= 200, hence not the default (docs/reference/benchmarks.md).
+K_{i-1}, m), h(l, m) = l + log(1 + b(l, m) (x - m)). (a) h is non-decreasing in l:
+d h / d l = (1 + (x - m) (b + d b / d l)) / (1 + b (x - m)). Where the square root binds with
+need r = R - l >= r0, d b / d l = -b / (2 r) >= -b; where the exponential binds (r < r0),
+d b / d l = -b exactly; where c/m binds, 0. So b + d b / d l is in [0, b]: for x >= m the
+numerator is >= 1, for x < m it is >= 1 - (m - x) b >= 1 - c > 0. (b) h is non-increasing
+in m at fixed l: d h / d m has the sign of (d b / d m) (x - m) - b, and b is S^(-1/2) times
+a factor free of m, with d log S / d m = 0 (sigma2) or 1/m - 1/(1 - m) (m (1 - m)), or c/m:
+so -1/m <= d log b / d m <= 1/(1 - m), which gives (d b / d m) (x - m) <= b for every x in
+[0, 1]. By induction on i, log K+_i(m) is non-increasing in m for every i, and so is its
+running maximum (K- non-decreasing). A bet decaying faster than exp(-l) near the target
+(STaR-Bets' sqrt(r) has an unbounded slope at r = 0) breaks (a), and the capital need not be
+monotone in m. (a) is also what makes the worst case of a failed run the least capital of
+every completion scored with the same variances: the worst factor gives the least capital
+so far, and every later capital is non-decreasing in it (:func:`worst_twin_sides`,
+``inference.failures``). The bets depend on the tuning level delta0 through the target only,
+so, as for the plug-in bets, the p-value p = 2 / K* is valid at every level, and Holm's
+decisions at levels other than delta0's use capitals aimed at 1/delta0. Measured width:
+0.91-1.02x deterministic STaR-Bets in 27 cells (plug-in bets 0.94-1.26x), never wider than
+0.90x Hoeffding (docs/reference/benchmarks.md).
 
 Tuning level delta0: by default alpha0 / 2 with alpha0 = alpha / (2 H), alpha the family's
-level ``testing.alpha`` (the Bonferroni level over the 2H one-sided hypotheses, where Holm's
-decisions are made); any delta0 gives valid bounds, it only moves where they are tightest.
+level ``testing.alpha`` and H the parameter sets of the family (a twin's hypotheses of one
+bound kind): Holm's smallest level over its 2H one-sided hypotheses, where its first decision
+is made (``falsify.run_tests`` calls the test once per family); any delta0 gives valid
+bounds, it only moves where they are tightest.
 
 Assumptions: each side i.i.d. and bounded in [y_lo, y_up] after clipping; data order as
 above. The sides need not be independent (the union rule is a union bound over two
@@ -159,6 +166,7 @@ import numpy as np
 from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide re-exported
     C_TRUNC,
     OrderedSide,
+    StarBets,
     capital_bound,
     chunk_ranges,
     crossing,
@@ -171,7 +179,9 @@ from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide
 )
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
-BETS = ("plugin", "mixture", "star")  # WSR plug-in (default) | order-free mixture | STaR
+BETS = ("plugin", "mixture", "star")  # WSR plug-in | order-free mixture | STaR (default)
+DEFAULT_BETS = "star"
+PLACING_BETS = ("plugin", "star")  # bets that put each failed run's worst case at its place
 ORDER_KINDS = ("data", "seed")  # plug-in order: fixed by the data (default) | seeded
 MIX_GRID = 6  # J constant bets in the mixture (power against J: docs/explanation/statistics.md)
 MIX_RATIO = 1.7  # r: spacing of the grid (J = 6: bets lambda_min .. 14 lambda_min)
@@ -277,9 +287,10 @@ def _checked(samples: HypothesisSamples, delta0: np.ndarray | float
 
 def ordered_sides(
     samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, c: float = C_TRUNC,
-    orders: int = 1, order: str = "seed",
+    orders: int = 1, order: str = "seed", star: bool = False,
 ) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
-    """(Y_lo, Y_up, twin) rescaled to [0, 1], in data or seeded random order, with their bets.
+    """(Y_lo, Y_up, twin) rescaled to [0, 1], in data or seeded random order, with their bets
+    (``star``: also the target-recalculating bets' inputs, from the same variances).
 
     The observational sample is materialised here (``order`` "data" with
     ``samples.follow_pos``: every entering trajectory at its content-keyed position, followers'
@@ -306,9 +317,13 @@ def ordered_sides(
     follow, twin = samples.follow, samples.twin
     y_lo = samples.y_lo
 
+    def _star(x: np.ndarray, offsets: np.ndarray, sig2: np.ndarray) -> StarBets | None:
+        return star_bets(x, offsets, d0, sig2=sig2) if star else None
+
     def obs() -> tuple[OrderedSide, OrderedSide]:
         x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
         l_lo, l_up = np.empty(offs[-1]), np.empty(offs[-1])
+        v_lo, v_up = (np.empty(offs[-1] if star else 0) for _ in range(2))
         for h0, h1 in chunk_ranges(n):
             o = offs[h0: h1 + 1] - offs[h0]
             lay = flat_layout(o)  # shared by Y_lo and Y_up
@@ -333,13 +348,18 @@ def ordered_sides(
             sl = slice(offs[h0], offs[h1])
             x_lo[sl] = np.where(fill, 0.0, xf)
             x_up[sl] = np.where(fill, 1.0, xf)
-            l_lo[sl] = plugin_bets(x_lo[sl], o, d0[h0:h1], c, lay)
-            l_up[sl] = plugin_bets(x_up[sl], o, d0[h0:h1], c, lay)
-        return OrderedSide(x_lo, l_lo, offs), OrderedSide(x_up, l_up, offs)
+            for x, lam, v in ((x_lo, l_lo, v_lo), (x_up, l_up, v_up)):
+                var = running_moments(x[sl], o, lay)[1]
+                lam[sl] = plugin_bets(x[sl], o, d0[h0:h1], c, lay, sig2=var)
+                if star:
+                    v[sl] = var
+        return (OrderedSide(x_lo, l_lo, offs, star=_star(x_lo, offs, v_lo)),
+                OrderedSide(x_up, l_up, offs, star=_star(x_up, offs, v_up)))
 
     def twin_side() -> OrderedSide:
         sizes = twin.sizes
         xt, lt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
+        vt = np.empty(twin.offsets[-1] if star else 0)
         for h0, h1 in chunk_ranges(sizes):
             o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
             sl = slice(twin.offsets[h0], twin.offsets[h1])
@@ -347,15 +367,19 @@ def ordered_sides(
             v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
                  - y_lo[h0:h1][g]) / width[h0:h1][g]
             xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)]
-            lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c)
-        return OrderedSide(xt, lt, twin.offsets)
+            var = running_moments(xt[sl], o)[1]
+            lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c, sig2=var)
+            if star:
+                vt[sl] = var
+        return OrderedSide(xt, lt, twin.offsets, star=_star(xt, twin.offsets, vt))
 
     with ThreadPoolExecutor(2) as pool:
         f_obs, f_tw = pool.submit(obs), pool.submit(twin_side)
         (lo, up), tw = f_obs.result(), f_tw.result()
     k = max(int(orders), 1)
-    return (OrderedSide(lo.x, lo.lam, lo.offsets, k), OrderedSide(up.x, up.lam, up.offsets, k),
-            OrderedSide(tw.x, tw.lam, tw.offsets, k))
+    return (OrderedSide(lo.x, lo.lam, lo.offsets, k, lo.star),
+            OrderedSide(up.x, up.lam, up.offsets, k, up.star),
+            OrderedSide(tw.x, tw.lam, tw.offsets, k, tw.star))
 
 
 def twin_candidates(samples: HypothesisSamples) -> tuple[Ragged, np.ndarray]:
@@ -383,7 +407,7 @@ def twin_candidates(samples: HypothesisSamples) -> tuple[Ragged, np.ndarray]:
 
 def worst_twin_sides(
     samples: HypothesisSamples, delta0: np.ndarray | float, seed: int = 0, orders: int = 1,
-    order: str = "seed",
+    order: str = "seed", star: bool = False,
 ) -> tuple[OrderedSide, OrderedSide]:
     """Twin sides for H_lo and H_up with each failed run's worst case at its own place.
 
@@ -392,8 +416,10 @@ def worst_twin_sides(
     plug-in bets of the successful runs only, tuned for n_c: a failed run gets the bet the
     next successful run would get (it reads only successful values before it). A failed run
     enters the H_lo side as x = 1 (the K- factor 1 - lambda (1 - m), the least any outcome
-    or not entering can give) and the H_up side as x = 0. Without failed runs this is
-    :func:`ordered_sides`' twin side. Validity: ``inference.failures`` module doc.
+    or not entering can give) and the H_up side as x = 0. ``star``: target-recalculating
+    bets from the same variances (each bet also reads the capital so far, worst cases
+    included). Without failed runs this is :func:`ordered_sides`' twin side. Validity:
+    ``inference.failures`` module doc.
     """
     if order not in ORDER_KINDS:
         raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
@@ -420,10 +446,14 @@ def worst_twin_sides(
     _, prev = running_moments(x_ext, offs_ext, lay)
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / d0) / sizes  # tuned for n_c
-    lam = np.sqrt(k[gid] / prev[slot])
+    sig2 = prev[slot]
+    lam = np.sqrt(k[gid] / sig2)
     copies = max(int(orders), 1)
-    return (OrderedSide(np.where(failed, 1.0, x), lam, cand.offsets, copies),
-            OrderedSide(np.where(failed, 0.0, x), lam, cand.offsets, copies))
+    x_lo, x_up = np.where(failed, 1.0, x), np.where(failed, 0.0, x)
+    return (OrderedSide(x_lo, lam, cand.offsets, copies,
+                        star_bets(x_lo, cand.offsets, d0, sig2=sig2) if star else None),
+            OrderedSide(x_up, lam, cand.offsets, copies,
+                        star_bets(x_up, cand.offsets, d0, sig2=sig2) if star else None))
 
 
 def _check_grid(grid: int, ratio: float) -> None:
@@ -483,8 +513,8 @@ def _subset(samples: HypothesisSamples, keep: np.ndarray) -> HypothesisSamples:
 
 
 def default_tune_alpha(h: int, alpha: float = 0.05) -> float:
-    """alpha / (2H): the Bonferroni level over the 2H one-sided hypotheses of a run at the
-    family's level alpha (``testing.alpha``)."""
+    """alpha / (2H): the smallest Holm level of a family of H parameter sets (2H one-sided
+    hypotheses) at the family's level alpha (``testing.alpha``)."""
     return float(alpha) / (2 * max(int(h), 1))
 
 
@@ -496,7 +526,7 @@ _CHUNK_ELEMENTS = 1 << 23  # copies (n + nhat) summed per chunk of hypotheses: b
 class Bets:
     """How the capital is built: validated options of :func:`betting_test`."""
 
-    kind: str = "plugin"
+    kind: str = DEFAULT_BETS
     orders: int = 1  # plugin: K orders averaged
     running_max: bool = False  # plugin with one order: max_t K_t (Ville) instead of K_n
     grid: int = MIX_GRID  # mixture: J constant bets
@@ -511,30 +541,20 @@ class Bets:
               c: float) -> tuple[OrderedSide, OrderedSide, OrderedSide]:
         if self.kind == "mixture":
             return mixture_sides(samples, delta0, self.grid, self.ratio)
-        sides = ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
-                              order=self.order)
-        if self.kind == "star":
-            d0 = np.broadcast_to(np.asarray(delta0, float), (len(samples),))
-            return tuple(star_side(s, d0) for s in sides)
-        return sides
+        return ordered_sides(samples, delta0, seed=seed, c=c, orders=self.orders,
+                             order=self.order, star=self.kind == "star")
 
     def twin_sides(self, samples: HypothesisSamples, delta0: float | np.ndarray, seed: int,
                    tw: OrderedSide) -> tuple[OrderedSide, OrderedSide]:
         """The twin sides H_lo and H_up are tested on: ``tw`` itself, or with failed runs
-        at their places (:func:`worst_twin_sides`, plug-in bets)."""
-        if self.kind != "plugin" or not samples.has_failed_places:
+        at their places (:func:`worst_twin_sides`; plug-in and STaR bets)."""
+        if self.kind not in PLACING_BETS or not samples.has_failed_places:
             return tw, tw
         return worst_twin_sides(samples, delta0, seed=seed, orders=self.orders,
-                                order=self.order)
+                                order=self.order, star=self.kind == "star")
 
 
-def star_side(side: OrderedSide, delta0: np.ndarray) -> OrderedSide:
-    """The same ordered values with target-recalculating bets (module doc, "STaR bets")."""
-    return OrderedSide(side.x, side.lam, side.offsets, side.copies,
-                       star_bets(side.x, side.offsets, delta0))
-
-
-def make_bets(bets: str = "plugin", orders: int | None = None,
+def make_bets(bets: str = DEFAULT_BETS, orders: int | None = None,
               running_max: bool | None = None, grid: int = MIX_GRID,
               grid_ratio: float = MIX_RATIO, default_orders: int = ORDERS,
               order: str | None = None) -> Bets:
@@ -592,7 +612,7 @@ def betting_test(
     samples: HypothesisSamples,
     *,
     tune_alpha: float | None = None,
-    bets: str = "plugin",
+    bets: str = DEFAULT_BETS,
     order: str | None = None,
     grid: int = MIX_GRID,
     grid_ratio: float = MIX_RATIO,
@@ -652,7 +672,7 @@ def betting_test(
 
 def betting_bounds(
     samples: HypothesisSamples, alpha: float | np.ndarray, *, tune_alpha: float | None = None,
-    bets: str = "plugin", grid: int = MIX_GRID, grid_ratio: float = MIX_RATIO, seed: int = 0,
+    bets: str = DEFAULT_BETS, grid: int = MIX_GRID, grid_ratio: float = MIX_RATIO, seed: int = 0,
     orders: int | None = None, running_max: bool | None = None, c: float = C_TRUNC,
     order: str | None = None,
 ) -> dict[str, np.ndarray]:

@@ -8,12 +8,14 @@ docstring, the test that uses these kernels; the sequential mode
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
-STAR_FLOOR = 0.5  # r0: the smallest remaining need (nats) a STaR bet is sized for (star_bets)
+STAR_R0 = 0.5  # r0: the need (nats) below which a STaR bet decays exponentially (star_log_capital)
 
 
 @dataclass
@@ -21,14 +23,13 @@ class StarBets:
     """What a target-recalculating bet reads besides the values (:func:`star_bets`).
 
     ``sig2``: the predictable plug-in variance sigma2_{i-1} before every value (N,);
-    ``left``: the values left, this one included, n - i + 1 (N,); ``target``: log(1/delta0)
-    per group (G,). ``_by_step`` caches the values regrouped by position (built once).
+    ``target``: log(1/delta0)
+    per group (G,). ``order``: the groups by decreasing size (built once, for the kernel).
     """
 
     sig2: np.ndarray
-    left: np.ndarray
     target: np.ndarray
-    _by_step: tuple | None = None
+    order: np.ndarray | None = None
 
 @dataclass
 class OrderedSide:
@@ -61,7 +62,7 @@ class OrderedSide:
         keep = np.repeat(np.isin(np.arange(len(self.offsets) - 1), rows), self.sizes)
         sizes = self.sizes[rows]
         star = None if self.star is None else StarBets(
-            self.star.sig2[keep], self.star.left[keep], self.star.target[rows])
+            self.star.sig2[keep], self.star.target[rows])
         return OrderedSide(
             self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             self.copies, star,
@@ -101,9 +102,10 @@ def running_moments(
 
 def plugin_bets(
     x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
-    layout: tuple[np.ndarray, np.ndarray] | None = None,
+    layout: tuple[np.ndarray, np.ndarray] | None = None, sig2: np.ndarray | None = None,
 ) -> np.ndarray:
-    """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc).
+    """WSR's fixed-n predictable plug-in bets lambda_i for every group (see module doc);
+    ``sig2``: the predictable variances sigma2_{i-1} if already computed.
 
     ``delta0`` has one tuning level per group. lambda_i uses sigma2_{i-1} only. Not
     truncated here: ``c`` truncation is m-dependent (c/m, c/(1-m), in :func:`log_capital`);
@@ -111,46 +113,78 @@ def plugin_bets(
     """
     sizes = np.diff(offsets)
     gid, t = flat_layout(offsets) if layout is None else layout
-    _, prev = running_moments(x, offsets, (gid, t))
+    if sig2 is None:
+        _, sig2 = running_moments(x, offsets, (gid, t))
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / sizes  # per group
-    return np.sqrt(k[gid] / prev)
+    return np.sqrt(k[gid] / sig2)
 
 
 def star_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray,
-              layout: tuple[np.ndarray, np.ndarray] | None = None) -> StarBets:
+              layout: tuple[np.ndarray, np.ndarray] | None = None,
+              sig2: np.ndarray | None = None) -> StarBets:
     """Target-recalculating (STaR) bets' inputs for every group; the bets themselves depend
     on m and on the capital so far, and are formed in :func:`star_log_capital`.
 
     Parameters: ``x`` values in [0, 1] group after group in their order; ``offsets`` the
     groups' bounds; ``delta0`` one tuning level per group (the capital's target is
-    1/delta0). Returns the predictable plug-in variance sigma2_{i-1} (as
-    :func:`running_moments`), the values left n - i + 1 and log(1/delta0).
+    1/delta0); ``sig2`` the predictable variances if already computed (else those of
+    :func:`running_moments`). Returns sigma2_{i-1} and log(1/delta0).
     """
     sizes = np.diff(offsets)
-    gid, t = flat_layout(offsets) if layout is None else layout
-    _, prev = running_moments(x, offsets, (gid, t))
+    if sig2 is None:
+        _, sig2 = running_moments(x, offsets, layout)
     with np.errstate(divide="ignore"):
         target = np.log(1.0 / np.broadcast_to(np.asarray(delta0, float), sizes.shape))
-    return StarBets(prev, (sizes[gid] - t + 1).astype(float), target)
+    return StarBets(sig2, target)
 
 
-def _by_step(side: OrderedSide) -> tuple:
-    """The side's values regrouped by position: groups sorted by size (longest first), so at
-    position t the groups still running are a prefix; per position, slices of flat arrays."""
-    st = side.star
-    if st._by_step is None:
-        sizes = side.sizes
-        order = np.argsort(-sizes, kind="stable")
-        ssz = sizes[order]
-        tmax = int(ssz[0]) if len(ssz) else 0
-        active = np.searchsorted(-ssz, -np.arange(tmax), side="left")  # groups with size > t
-        starts = side.offsets[:-1][order]
-        idx = np.concatenate([starts[:a] + t for t, a in enumerate(active)]) if tmax else \
-            np.zeros(0, np.int64)
-        bounds = np.concatenate([[0], np.cumsum(active)]).astype(np.int64)
-        st._by_step = (order, active, bounds, side.x[idx], st.sig2[idx], st.left[idx])
-    return st._by_step
+_LANES = 4  # groups stepped together: independent chains hide the latency of sqrt and log1p
+
+
+@numba.njit(cache=True, nogil=True)
+def _star_kernel(x, sig2, offsets, m, target, sign, running_max, c, r0, order, out):
+    """:func:`star_log_capital`'s recursion, ``_LANES`` groups (by ``order``) at a time."""
+    n_groups = len(offsets) - 1
+    pos = np.empty(_LANES, np.int64)
+    end = np.empty(_LANES, np.int64)
+    ell = np.empty(_LANES)
+    top = np.empty(_LANES)
+    mg = np.empty(_LANES)
+    var_m = np.empty(_LANES)
+    cap = np.empty(_LANES)
+    tgt = np.empty(_LANES)
+    for g0 in range(0, n_groups, _LANES):
+        lanes = min(_LANES, n_groups - g0)
+        steps = np.int64(1) << 62
+        for k in range(lanes):
+            g = order[g0 + k]
+            pos[k], end[k] = offsets[g], offsets[g + 1]
+            steps = min(steps, end[k] - pos[k])
+            mk = m[g] if sign > 0 else 1.0 - m[g]
+            mg[k], var_m[k], cap[k], tgt[k] = mk, mk * (1.0 - mk), c / mk, target[g]
+            ell[k], top[k] = 0.0, 0.0
+        for j in range(steps):
+            for k in range(lanes):
+                i = pos[k] + j
+                xi = x[i] if sign > 0 else 1.0 - x[i]
+                need = tgt[k] - ell[k]
+                b = math.sqrt(2.0 * max(need, r0) / ((end[k] - i) * min(sig2[i], var_m[k])))
+                if need < r0:
+                    b *= math.exp(need - r0)
+                ell[k] += math.log1p(min(b, cap[k]) * (xi - mg[k]))
+                top[k] = max(top[k], ell[k])
+        for k in range(lanes):
+            e, tp = ell[k], top[k]
+            for i in range(pos[k] + steps, end[k]):
+                xi = x[i] if sign > 0 else 1.0 - x[i]
+                need = tgt[k] - e
+                b = math.sqrt(2.0 * max(need, r0) / ((end[k] - i) * min(sig2[i], var_m[k])))
+                if need < r0:
+                    b *= math.exp(need - r0)
+                e += math.log1p(min(b, cap[k]) * (xi - mg[k]))
+                tp = max(tp, e)
+            out[order[g0 + k]] = tp if running_max else e
 
 
 def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
@@ -158,39 +192,30 @@ def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: b
     """log max_{0<=t<=n} K^{sign}_t(m) per group with target-recalculating bets.
 
     K+ (``sign`` +1), for each group with values x_1..x_n in [0, 1], target T = 1/delta0,
-    R = log T and l_i = log K+_i(m) (l_0 = 0)::
+    R = log T, l_i = log K+_i(m) (l_0 = 0) and r_i = R - l_{i-1} the need left::
 
         K+_i(m) = K+_{i-1}(m) (1 + b_i(m) (x_i - m)),
-        b_i(m) = min( sqrt(2 max(R - l_{i-1}(m), r0) / ((n - i + 1) S_i(m))), c / m ),
-        S_i(m) = min(sigma2_{i-1}, m (1 - m)),   r0 = 1/2 (``STAR_FLOOR``),
+        b_i(m) = min( sqrt(2 max(r_i, r0) / ((n - i + 1) S_i(m))) exp(min(r_i - r0, 0)),
+                      c / m ),
+        S_i(m) = min(sigma2_{i-1}, m (1 - m)),   r0 = 1/2 (``STAR_R0``),
 
     sigma2_{i-1} the predictable plug-in variance of :func:`running_moments`. The bet is the
     one that, at the current variance, lets the n - i + 1 values left raise the capital by the
-    factor still missing to the target, exp(R - l_{i-1}) (Voracek & Orabona 2025, STaR-Bets;
-    for one-sided tests of mean <= m the largest variance is m (1 - m), their cap of S).
+    factor still missing to the target, exp(r_i) (Voracek & Orabona 2025, STaR-Bets; for
+    one-sided tests of mean <= m the largest variance is m (1 - m), their cap of S). Below a
+    need of r0 it decays as exp(r_i - r0) instead of sqrt(r_i): the continuation whose
+    logarithmic derivative in l stays -1, which keeps the capital monotone in m.
     K- is K+ of 1 - x at 1 - m (S and sigma2 are symmetric). Validity and monotonicity in m:
     :mod:`twinfalsify.inference.betting`'s module doc, "STaR bets". Terminal capital
-    (``running_max`` False) or running maximum; one pass over positions, vectorised over
-    groups.
+    (``running_max`` False) or running maximum; compiled (numba), groups of similar size
+    stepped together.
     """
-    order, active, bounds, xs, sig2, left = _by_step(side)
-    m = np.asarray(m, float)[order]
-    target = side.star.target[order]
-    if sign < 0:
-        xs, m = 1.0 - xs, 1.0 - m
-    cap = c / m
-    var_m = m * (1.0 - m)
-    ell, top = np.zeros(len(m)), np.zeros(len(m))
-    for t, a in enumerate(active):
-        sl = slice(bounds[t], bounds[t + 1])
-        s = np.minimum(sig2[sl], var_m[:a])
-        need = np.maximum(target[:a] - ell[:a], STAR_FLOOR)
-        b = np.minimum(np.sqrt(2.0 * need / (left[sl] * s)), cap[:a])
-        ell[:a] += np.log1p(b * (xs[sl] - m[:a]))
-        if running_max:
-            np.maximum(top[:a], ell[:a], out=top[:a])
-    out = np.empty(len(m))
-    out[order] = top if running_max else ell
+    st = side.star
+    if st.order is None:
+        st.order = np.argsort(-side.sizes, kind="stable")
+    out = np.empty(side.n_groups)
+    _star_kernel(side.x, st.sig2, side.offsets, np.asarray(m, float), st.target,
+                 int(sign), bool(running_max), float(c), STAR_R0, st.order, out)
     return out
 
 

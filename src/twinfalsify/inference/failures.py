@@ -221,7 +221,8 @@ def conservative_pvalues(
 
 def family_tuned(method: Method, h: int) -> Method:
     """The method with the tuning of a family of h parameter sets fixed. Betting tunes its
-    bets by default at alpha / (2H) of the samples it is given; completions (below) and
+    bets by default at alpha / (2H) of the samples it is given (one family per call,
+    :func:`failure_pvalues`' ``families``); completions (below) and
     sensitivity widenings are evaluated on subsets or tilings, so the tuning of the whole
     family is bound (the orders are per hypothesis already, ``betting._order_keys``)."""
     if isinstance(method, partial) and method.func is betting_test and \
@@ -254,9 +255,30 @@ def failure_pvalues(
     samples: HypothesisSamples,
     n_failed: np.ndarray,
     mode: str = "conservative",
+    families: np.ndarray | None = None,
     **kwargs,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """p-values under the chosen handling of failed runs (``MODES``)."""
+    """p-values under the chosen handling of failed runs (``MODES``).
+
+    ``families``: each parameter set's family (the correction's, e.g. the bound kind). A
+    method tuned to its family's size (the betting test: :func:`family_tuned`) is then
+    called once per family, so its bets aim at that family's smallest Holm level; every
+    other method sees all parameter sets at once. A hypothesis' betting order depends on
+    its own key only, so the split changes nothing but the tuning.
+    """
+    if families is not None and family_tuned(method, 1) is not method:
+        fam = np.asarray(families)
+        if fam.shape != (len(samples),):
+            raise ValueError(f"families must label each of the {len(samples)} parameter sets")
+        labels, inv = np.unique(fam.astype(str), return_inverse=True)
+        f = np.asarray(n_failed)
+        p_lo, p_up = np.ones(len(samples)), np.ones(len(samples))
+        for j in range(len(labels)):
+            idx = np.flatnonzero(inv == j)
+            sub = samples if len(labels) == 1 else samples.take(idx)
+            p_lo[idx], p_up[idx] = failure_pvalues(family_tuned(method, len(idx)), sub, f[idx],
+                                                   mode, **kwargs)
+        return p_lo, p_up
     if mode == "drop":
         return method(samples.without_failed())
     if mode == "conservative":

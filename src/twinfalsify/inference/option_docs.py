@@ -88,28 +88,29 @@ OPTIONS: dict[str, dict[str, OptionDoc]] = {
     },
     "betting": {
         "bets": OptionDoc(
-            "string", "plugin", "plugin: WSR's predictable plug-in bets (one order of each "
-            "sample); mixture: order-free mixture of `grid` constant bets; star: "
-            "target-recalculating bets after STaR-Bets (same order as plugin)", "mixture",
+            "string", "star", "star: target-recalculating bets after STaR-Bets (one order "
+            "of each sample); plugin: WSR's predictable plug-in bets (the same order); mixture: "
+            "order-free mixture of `grid` constant bets", "plugin",
             choices=("plugin", "mixture", "star")),
         "order": OptionDoc(
-            "string or null", None, "plugin bets: each sample in its data order, keyed by "
+            "string or null", None, "star and plugin bets: each sample in its data order, keyed by "
             "the study seed (data), or a random order drawn from the study's seed (seed)", "seed",
             choices=("data", "seed"), default_text="null = data"),
         "orders": OptionDoc(
             "integer or null", None, "plugin bets: K orders whose terminal capitals are "
             "averaged (K > 1 needs running_max false)", 4, lo=1, default_text="null = 1"),
         "running_max": OptionDoc(
-            "boolean or null", None, "plugin bets: use the running maximum of the capital "
-            "(Ville's inequality) instead of the terminal capital", False,
+            "boolean or null", None, "star and plugin bets: use the running maximum of the "
+            "capital (Ville's inequality) instead of the terminal capital", False,
             default_text="null = true when orders is 1, else false"),
         "c": OptionDoc(
             "number", 0.9, "bet truncation: a bet against mean m is at most c/m (c/(1-m)); "
             "WSR suggest 1/2 or 3/4", 0.75, lo=0.0, hi=1.0, lo_open=True, hi_open=True),
         "tune_alpha": OptionDoc(
-            "number or null", None, "the level the plug-in bets are tuned for", 0.001,
+            "number or null", None, "the level the bets are tuned for (every kind of bets)",
+            0.001,
             lo=0.0, hi=1.0, lo_open=True, hi_open=True,
-            default_text="null = testing.alpha / (2 H), H the parameter sets tested together"),
+            default_text="null = testing.alpha / (2 H), H the parameter sets of the family"),
         "grid": OptionDoc(
             "integer", 6, "mixture bets: J constant bets in the mixture", 8, lo=1),
         "grid_ratio": OptionDoc(

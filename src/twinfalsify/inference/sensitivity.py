@@ -56,11 +56,12 @@ def widened(samples: HypothesisSamples, delta: float) -> HypothesisSamples:
 def sweep_pvalues(
     method: Method, samples: HypothesisSamples, n_failed: np.ndarray, deltas: Sequence[float],
     failed_runs: str = "conservative", progress: Callable[[int, float], None] | None = None,
-    at_zero: tuple[np.ndarray, np.ndarray] | None = None,
+    at_zero: tuple[np.ndarray, np.ndarray] | None = None, families: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(p_lo, p_up), each (len(deltas), H): the method's p-values at every widening, each
     the main analysis' own call on the widened samples (Delta = 0: the main analysis; its
-    p-values ``at_zero`` when given). ``progress(j, seconds)`` is called after widening j."""
+    p-values ``at_zero`` when given; ``families`` as in ``failures.failure_pvalues``).
+    ``progress(j, seconds)`` is called after widening j."""
     f = np.asarray(n_failed, np.int64)
     out = []
     with order_cache():
@@ -69,7 +70,8 @@ def sweep_pvalues(
             if float(d) == 0.0 and at_zero is not None:
                 out.append(tuple(np.asarray(p, float) for p in at_zero))
             else:
-                out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs))
+                out.append(failure_pvalues(method, widened(samples, float(d)), f, failed_runs,
+                                           families=families))
             if progress is not None:
                 progress(j, time.perf_counter() - t0)
     return np.array([o[0] for o in out]), np.array([o[1] for o in out])
@@ -120,7 +122,8 @@ def sensitivity_sweep(
         known = None if at_zero is None else at_zero.get(name)
         if known is not None and any(np.shape(p) != (h,) for p in known):
             raise ValueError(f"sensitivity: at_zero[{name!r}] does not have {h} p-values a side")
-        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, step, known)
+        p_lo, p_up = sweep_pvalues(fn, samples, f, deltas, failed_runs, step, known,
+                                   families=None if family is None else fam)
         for j, delta in enumerate(deltas):
             rej = correct_within(np.concatenate([p_lo[j], p_up[j]]), np.concatenate([fam, fam]),
                                  alpha, correction)

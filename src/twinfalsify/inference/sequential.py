@@ -209,11 +209,12 @@ class SequentialState:
         self.obs_samples = HypothesisSamples(self.y_lo, self.y_up, self.obs.n,
                                              self.obs.follow, empty,
                                              follow_pos=self.obs.follow_pos)
-        # plug-in bets in the data order (as the fixed test's default), running
-        # maximum (the grid mixture of the fixed scheme, measured too: same decisions, ~5x the
-        # compute; docs/explanation/sequential.md)
+        # the fixed test's default bets: target-recalculating, in the data order, running
+        # maximum (the observational sample is whole from the start; the grid mixture of the
+        # fixed scheme, measured too: same decisions, ~5x the compute;
+        # docs/explanation/sequential.md)
         self.lo, self.up, _ = ordered_sides(self.obs_samples, self.delta0, self.seed, self.c,
-                                            orders=1, order="data")
+                                            orders=1, order="data", star=True)
         lev_star, lev = np.log(2.0 / self.a_star), np.full(h, np.log(2.0 / self.alpha))
         # L = sup{m: max K+_lo(m) >= 2/a}; U = inf{m: max K-_up(m) >= 2/a}
         # bounds are per hypothesis: compute them only where they are used (a shard's own);
