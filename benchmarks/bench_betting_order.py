@@ -1,12 +1,13 @@
 """Betting p-values and the sample order: decisions across seeds, one order vs K orders.
 
     PYTHONPATH=src python benchmarks/bench_betting_order.py [--config config/config.yaml]
-        [--seeds 5] [--bets plugin mixture plugin:16 plugin:1:seed plugin:16:seed]
+        [--seeds 5] [--bets star plugin mixture plugin:16 plugin:1:seed plugin:16:seed]
 
 Builds the study in-process as ``bench_adaptive.build`` does, simulates every twin run of
 the plan (builtin twins), then runs the betting test (``testing.failed_runs`` of the config,
-Holm per kind) with each bets variant (``plugin``: plug-in bets in the data order, the
-default; ``mixture``: the order-free grid mixture; ``plugin:K``: terminal capitals averaged
+Holm per kind) with each bets variant (``star``: target-recalculating bets in the data
+order, the default; ``plugin``: plug-in bets in the same order; ``mixture``: the order-free
+grid mixture; ``plugin:K``: terminal capitals averaged
 over K data orders; a ``:seed`` suffix: seeded orders instead) for seeds 0..S-1 of the test
 (the study itself, hence the data, is fixed). Prints per twin and variant: Holm rejections
 per seed (min-max), causal / Manski under seed 0 (and, for comparison, Holm over both kinds
@@ -51,7 +52,8 @@ def main() -> None:
     ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--bets", nargs="+",
-                    default=["plugin", "mixture", "plugin:16", "plugin:1:seed", "plugin:16:seed"])
+                    default=["star", "plugin", "mixture", "plugin:16", "plugin:1:seed",
+                             "plugin:16:seed"])
     ap.add_argument("--twins", nargs="+", default=None)
     ap.add_argument("--layouts", type=int, nargs=2, default=None, metavar=("R", "S"))
     args = ap.parse_args()

@@ -227,8 +227,10 @@ def _method_sections() -> list[str]:
         rows = []
         for name, o in opts.items():
             default = _text(o.default_text) if o.default_text else _code(_flow(o.default))
+            example = _code(_flow(o.example)) + "".join(
+                f" with {_code(f'{k}: {_flow(v)}')}" for k, v in o.needs)
             rows.append(_row(name, _text(o.meaning), o.type, default, _text(o.limits()),
-                             _code(_flow(o.example))))
+                             example))
         lines += _table(rows)
     return lines
 

@@ -141,18 +141,21 @@ def _check(method: str, opts: dict) -> bool:
 
 @pytest.mark.parametrize("method", [m for m in OPTIONS if OPTIONS[m]])
 def test_documented_limits_are_the_checks_limits(method):
-    """The example is accepted; a value just past a documented bound is refused; a closed
-    bound itself is accepted; a choice outside the listed ones is refused."""
+    """The example is accepted (with the options it needs); a value just past a documented
+    bound is refused; a closed bound itself is accepted; a choice outside the listed ones is
+    refused."""
     for name, doc in OPTIONS[method].items():
-        assert _check(method, {name: doc.example}), (method, name, doc.example)
+        need = dict(doc.needs)
+        assert _check(method, {**need, name: doc.example}), (method, name, doc.example)
         integer = doc.type.startswith("integer")
         step = 1 if integer else 1e-9
         for bound, sign, is_open in ((doc.lo, -1, doc.lo_open), (doc.hi, 1, doc.hi_open)):
             if bound is None:
                 continue
             at = int(bound) if integer else bound
-            assert not _check(method, {name: at + sign * step}), (method, name, "past", bound)
-            assert _check(method, {name: at}) != is_open, (method, name, "at", bound)
+            assert not _check(method, {**need, name: at + sign * step}), (method, name,
+                                                                          "past", bound)
+            assert _check(method, {**need, name: at}) != is_open, (method, name, "at", bound)
         if doc.choices:
             assert not _check(method, {name: "no-such-choice"}), (method, name)
             for c in doc.choices:

@@ -33,6 +33,7 @@ class OptionDoc:
     hi_open: bool = False
     choices: tuple[str, ...] = ()
     default_text: str = ""
+    needs: tuple[tuple[str, Any], ...] = ()  # other options the example needs, (key, value)
 
     def limits(self) -> str:
         """The accepted range in words, as the reference page shows it."""
@@ -98,7 +99,8 @@ OPTIONS: dict[str, dict[str, OptionDoc]] = {
             choices=("data", "seed"), default_text="null = data"),
         "orders": OptionDoc(
             "integer or null", None, "plugin bets: K orders whose terminal capitals are "
-            "averaged (K > 1 needs running_max false)", 4, lo=1, default_text="null = 1"),
+            "averaged (K > 1 needs running_max false)", 4, lo=1, default_text="null = 1",
+            needs=(("bets", "plugin"),)),
         "running_max": OptionDoc(
             "boolean or null", None, "star and plugin bets: use the running maximum of the "
             "capital (Ville's inequality) instead of the terminal capital", False,
