@@ -5,5 +5,6 @@ never from one another (pytest fixtures that several files use live in ``tests/c
 - ``workflow``: Snakemake studies run from the tests, folders built once per test run;
 - ``studies``: a synthetic study run in-process (no Snakemake) and its twin samples;
 - ``twins``: inputs and expected outputs for twin runs, a twin served in-process;
-- ``docs``: the documentation site built in strict mode.
+- ``docs``: the documentation site built in strict mode;
+- ``reference``: earlier forms of optimised library code, which the fast forms must equal.
 """

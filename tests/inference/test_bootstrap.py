@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.reference import resample_sums_reference
 
 from twinfalsify.inference.bootstrap import (
     bootstrap_distributions,
@@ -161,3 +162,54 @@ def test_all_resamples_separated_is_reported_at_the_floor_and_flagged():
     assert boot["p_floor"].to_numpy()[: h // 2].all()
     assert boot["rejected"].to_numpy()[: h // 2].all()
     assert not res.loc[res["method"] == "hoeffding", "p_floor"].any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_resample_sums_are_the_reference_draws_bit_for_bit(seed):
+    """Same sums and the same generator state after (the draws that follow are the same):
+    groups from empty to 30,000 values, rows drawn 0 times, blocks over the draw budget,
+    an odd number of 32-bit draws before (a half-used 64-bit output)."""
+    from twinfalsify.inference.bootstrap import _resample_sums
+
+    rng = np.random.default_rng(seed)
+    sizes = rng.choice([0, 1, 2, 7, 130, 2_000, 30_000], size=40)
+    values = Ragged.from_groups([rng.normal(50, 20, k) for k in sizes])
+    rows = rng.permutation(np.flatnonzero(sizes > 0))[:25]
+    rows = np.concatenate([rows, np.flatnonzero(sizes == 0)[:3]])
+    b = 37
+    counts = (rng.random((rows.size, b)) * values.sizes[rows][:, None] * 1.5).astype(np.int64)
+    counts[rng.random(rows.size) < 0.2] = 0
+    g1, g2 = np.random.default_rng(seed + 10), np.random.default_rng(seed + 10)
+    g1.integers(0, 1 << 32, 3, dtype=np.int64), g2.integers(0, 1 << 32, 3, dtype=np.int64)
+    want = resample_sums_reference(values, rows, counts, g1)
+    got = _resample_sums(values, rows, counts, g2)
+    assert np.array_equal(got, want) and np.any(want != 0)
+    assert g1.bit_generator.state == g2.bit_generator.state
+    np.testing.assert_array_equal(g1.integers(0, 1 << 32, 5), g2.integers(0, 1 << 32, 5))
+    empty = np.zeros((0, b), np.int64)
+    assert _resample_sums(values, rows[:0], empty, g2).shape == (0, b)
+
+
+def test_bootstrap_p_values_are_the_reference_draws_bit_for_bit(monkeypatch):
+    """Whole bootstrap distributions, clipped masses at both ends, refused hypotheses
+    (n or nhat below min_n, n = 0, nhat = 0) included: exactly the reference's."""
+    from twinfalsify.inference import bootstrap
+
+    rng = np.random.default_rng(11)
+    h = 30
+    n = rng.integers(0, 600, h)
+    n[:2] = 0
+    nf = (n * rng.uniform(0.3, 1, h)).astype(np.int64)
+    nhat = rng.integers(0, 500, h)
+    nhat[2:4] = 0
+    follow = Ragged.from_groups([rng.uniform(-0.2, 1.2, k) for k in nf])
+    twin = Ragged.from_groups([rng.uniform(-0.3, 1.1, k) for k in nhat])
+    s = HypothesisSamples(np.full(h, 0.1), np.full(h, 0.9), n, follow, twin)
+    got = bootstrap_distributions(s, n_resamples=64, min_n=20, seed=3)
+    p_got = bootstrap_test(s, n_resamples=64, min_n=20, seed=3)
+    monkeypatch.setattr(bootstrap, "_resample_sums", resample_sums_reference)
+    want = bootstrap_distributions(s, n_resamples=64, min_n=20, seed=3)
+    p_want = bootstrap_test(s, n_resamples=64, min_n=20, seed=3)
+    for name in ("lo", "up", "twin"):
+        assert np.array_equal(getattr(got, name), getattr(want, name), equal_nan=True)
+    assert np.array_equal(p_got, p_want) and not np.all(got.eligible)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from helpers.reference import resample_sums_reference
 
 from twinfalsify.inference.hoeffding import hoeffding_test
 from twinfalsify.inference.multiple_testing import correct
@@ -131,3 +132,36 @@ def test_sweep_equals_one_call_per_widening_bit_for_bit():
         np.testing.assert_array_equal(p_lo[j], lo)
         np.testing.assert_array_equal(p_up[j], up)
     assert not np.allclose(p_lo[0], p_lo[-1])
+
+
+def _emptied(r: Ragged, groups: list[int]) -> Ragged:
+    return Ragged.from_groups([np.zeros(0) if i in groups else r.group(i) for i in range(len(r))])
+
+
+@pytest.mark.parametrize("failed_runs", ["conservative", "drop"])
+def test_sweep_bootstrap_equals_one_call_per_widening_bit_for_bit(failed_runs, monkeypatch):
+    """The bootstrap's p-values at every Delta are a separate call's on the widened samples,
+    and the reference draws' (``test_bootstrap``), bit for bit: hypotheses with n = 0 and
+    nhat = 0 (with and without failed runs) included, and the widenings do change them."""
+    from dataclasses import replace
+    from functools import partial
+
+    from twinfalsify.inference import bootstrap
+    from twinfalsify.inference.bootstrap import bootstrap_test
+    from twinfalsify.inference.failures import failure_pvalues
+
+    s, f = _with_failures(seed=6, h=40)
+    no_obs, no_twin = [0, 1], [2, 3]
+    s = replace(s, n=np.where(np.isin(np.arange(len(s)), no_obs), 0, s.n),
+                follow=_emptied(s.follow, no_obs), follow_pos=_emptied(s.follow_pos, no_obs),
+                twin=_emptied(s.twin, no_twin), twin_run=_emptied(s.twin_run, no_twin))
+    assert (s.n[no_obs] == 0).all() and (s.nhat[no_twin] == 0).all() and f[no_twin].any()
+    deltas = [0.0, 0.02, 0.1, 0.3]
+    m = partial(bootstrap_test, n_resamples=60, min_n=10, seed=9)
+    p_lo, p_up = sweep_pvalues(m, s, f, deltas, failed_runs)
+    monkeypatch.setattr(bootstrap, "_resample_sums", resample_sums_reference)
+    for j, d in enumerate(deltas):
+        lo, up = failure_pvalues(m, widened(s, d), f, failed_runs)
+        assert np.array_equal(p_lo[j], lo) and np.array_equal(p_up[j], up)
+    assert (p_lo[:, no_obs + (no_twin if failed_runs == "drop" else [])] == 1).all()
+    assert not np.array_equal(p_lo[0], p_lo[-1]) and (p_lo < 1).any()

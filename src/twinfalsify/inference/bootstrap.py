@@ -87,6 +87,10 @@ def _resample_sums(
     (rows sorted by their largest count, so padding wastes little). An index in
     0..size-1 is drawn as (u * size) >> 32 from a uniform 32-bit u (Lemire 2019):
     non-uniformity below size / 2^32, i.e. < 3e-6 for 11,000 values. Returns (len(rows), B).
+
+    The block shapes, the stream of u and the padded sums fix every result bit: the draws
+    are read straight from ``values`` (no padded copy of each group) and the padding draws
+    zeroed in place, which is faster and changes none of them.
     """
     n_rows, n_b = counts.shape
     out = np.zeros((n_rows, n_b))
@@ -95,6 +99,7 @@ def _resample_sums(
     sizes = values.sizes[rows]
     if np.any((counts > 0) & (sizes[:, None] == 0)):
         raise ValueError("bootstrap: cannot draw from an empty group")
+    starts = values.offsets[rows]
     m_row = counts.max(axis=1)
     order = np.argsort(m_row, kind="stable")
     i = 0
@@ -112,19 +117,17 @@ def _resample_sums(
         if m > 0:
             r = block.size
             size_i = sizes[block].astype(np.int64)
-            # padded values of the block's groups (r, width); padding never drawn
-            col = np.arange(int(size_i.max()))
-            src = values.offsets[rows[block]][:, None] + np.minimum(
-                col, np.maximum(size_i, 1)[:, None] - 1
-            )
-            padded = values.values[np.minimum(src, max(len(values.values) - 1, 0))]
-            # int64 throughout: u < 2^32 and size < 2^31, so u * size < 2^63 (no casts)
-            idx = rng.integers(0, 1 << 32, size=(r, n_b * m), dtype=np.int64)
-            idx *= size_i[:, None]
+            # one 32-bit output of the generator per u, as integers(..., dtype=int64) reads
+            # them (the same stream), stored at half the width; u < 2^32 and size < 2^31, so
+            # u * size < 2^63 in int64
+            u = rng.integers(0, 1 << 32, size=(r, n_b * m), dtype=np.uint32)
+            idx = np.multiply(u, size_i[:, None], dtype=np.int64)
             idx >>= 32
-            g = np.take_along_axis(padded, idx, axis=1).reshape(r, n_b, m)
-            keep = np.arange(m) < counts[block][:, :, None]
-            out[block] = np.where(keep, g, 0.0).sum(axis=2)
+            idx += starts[block][:, None]
+            # clip: only an empty group's draws (never kept) can point past the last value
+            g = values.values.take(idx, mode="clip").reshape(r, n_b, m)
+            np.copyto(g, 0.0, where=np.arange(m) >= counts[block][:, :, None])
+            out[block] = g.sum(axis=2)
         i = j
     return out
 

@@ -21,7 +21,10 @@ Speed: the betting test's data order depends on the samples' sizes and keys only
 [y_lo, y_up], so the sweep computes it once and reuses it at every widening
 (``betting.order_cache``); every p-value is the one a separate call gives, bit for bit. The
 main analysis' own p-values can be given for :math:`\Delta = 0` (``at_zero``), which are
-then not computed again.
+then not computed again. The bootstrap's resamples cannot be reused that way: it draws
+how many values of a resample are clipped at y_lo, at y_up or interior, with the shares of
+each at that widening (``bootstrap._side_draws``), so a widening that moves any value across
+a bound changes the draws of every hypothesis after it in the stream.
 
 Reference: Cornish et al. (2026), JMLR, appendix (sensitivity to y_lo, y_up).
 """
