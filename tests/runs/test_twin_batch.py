@@ -13,6 +13,7 @@ import io
 import json
 import re
 import sys
+import time
 
 import numpy as np
 import pandas as pd
@@ -316,6 +317,24 @@ def test_a_worker_dying_with_two_batches_in_flight_records_every_run_as_failed(m
     assert list(piped.status[1:]) == ["error"] * 11
     assert all("exited with code 3" in m and "(failed 2 attempt(s))" in m
                for m in piped.message[1:])
+
+
+def test_a_batch_behind_a_hung_one_waits_no_longer_than_that_batch():
+    """A message posted behind a request the twin hangs on is written as far as the pipe
+    takes it by the given deadline (the earlier batch's): the rest waits for ``flush``."""
+    worker = worker_mod.start_worker([*FAULTY, "--mode=hang:9"], ENV, 10.0)
+    try:
+        assert worker.post(simulate_request(0, 2, 9), time.monotonic() + 5.0)
+        big = {"op": "simulate_batch",
+               "requests": [simulate_request(i, 4, 10 + i) for i in range(3000)]}  # ~3 MB
+        start = time.monotonic()
+        assert not worker.post(big, start + 0.3)
+        assert not worker.flush(time.monotonic() + 0.2)
+        assert time.monotonic() - start < 2.0
+        with pytest.raises(worker_mod.WorkerTimeout):
+            worker.answer(0.2)
+    finally:
+        worker.kill()
 
 
 def test_protocol_twin_batch_size_option(tmp_path):

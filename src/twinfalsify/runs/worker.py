@@ -164,6 +164,7 @@ class Worker:
         self.stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self.hello: dict[str, Any] = {}
         self.max_line = MAX_LINE_BYTES  # set per request by ask()
+        self._unsent = memoryview(b"")  # the end of a message post() could not yet write
         self._stop = threading.Event()
         self._threads = [
             threading.Thread(target=self._read_stdout, daemon=True),
@@ -250,16 +251,16 @@ class Worker:
                 else f"worker exited with code {code}")
         return WorkerDied(what + (f"; stderr tail: {tail}" if tail else ""))
 
-    def _send(self, data: bytes, deadline: float) -> None:
-        """Write ``data`` to the twin's stdin by ``deadline`` (a twin that stopped reading
-        must not block the caller)."""
+    def _send(self, data: bytes | memoryview, deadline: float) -> memoryview:
+        """Write ``data`` to the twin's stdin until ``deadline`` (a twin that stopped
+        reading must not block the caller); return what is left unwritten (empty: all)."""
         assert self.proc.stdin is not None
         fd = self.proc.stdin.fileno()
         view = memoryview(data)
         while view:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise WorkerTimeout("the twin stopped reading its input")
+                break
             _, ready, _ = select.select([], [fd], [], min(remaining, PIPE_POLL_S))
             if not ready:
                 continue
@@ -267,6 +268,7 @@ class Worker:
                 view = view[os.write(fd, view):]
             except BlockingIOError:
                 continue
+        return view
 
     def ask(self, msg: dict[str, Any], timeout_s: float,
             max_line: int = MAX_LINE_BYTES) -> dict[str, Any]:
@@ -279,23 +281,31 @@ class Worker:
         self.max_line = max_line
         deadline = time.monotonic() + timeout_s
         try:
-            self._send(encode(msg).encode("utf-8"), deadline)
+            if self._send(encode(msg).encode("utf-8"), deadline):
+                raise WorkerTimeout("the twin stopped reading its input")
         except (OSError, ValueError):  # broken pipe: the worker is gone
             raise self._died() from None
         return self.answer(deadline - time.monotonic())
 
-    def post(self, msg: dict[str, Any], deadline: float) -> None:
-        """Send one message without waiting for its answer (read later with ``answer``).
+    def post(self, msg: dict[str, Any], deadline: float) -> bool:
+        """Send one message without waiting for its answer (read later with ``answer``);
+        whether it was written whole by ``deadline`` (else ``flush`` writes the rest).
 
-        Lets the next request go out while the twin still works on the previous one. A
-        twin that stopped reading by ``deadline`` is a WorkerTimeout; a closed pipe is not
-        raised here: the worker's death shows when its answer is awaited, with its exit
-        code and stderr tail, after any answers it wrote before dying are read.
+        Lets the next request go out while the twin still works on the previous one (the
+        twin reads it when it is done with that one). A closed pipe is not raised here: the
+        worker's death shows when its answer is awaited, with its exit code and stderr
+        tail, after any answers it wrote before dying are read.
         """
+        self._unsent = memoryview(encode(msg).encode("utf-8"))
+        return self.flush(deadline)
+
+    def flush(self, deadline: float) -> bool:
+        """Write what ``post`` left unwritten until ``deadline``; whether all is written."""
         try:
-            self._send(encode(msg).encode("utf-8"), deadline)
+            self._unsent = self._send(self._unsent, deadline)
         except (OSError, ValueError):  # broken pipe: answer() reports the death
-            pass
+            self._unsent = memoryview(b"")
+        return not self._unsent
 
     def answer(self, timeout_s: float, until: Callable[[], bool] | None = None,
                max_line: int | None = None) -> dict[str, Any]:
@@ -392,6 +402,7 @@ class _Batch:
     limit: float  # its time limit: timeout_s x its runs
     deadline: float  # for its answer; moved to when the twin gets to it (WorkerPool._land)
     max_line: int  # cap of its answer line
+    unsent: bool = False  # its message is not yet written whole (Worker.flush)
     error: BaseException | None = None  # the send failed (the twin stopped reading)
 
 
@@ -656,10 +667,12 @@ class WorkerPool:
         start = time.monotonic() if after is None else after.deadline
         cap = max(MAX_LINE_BYTES, MAX_LINE_BYTES_PER_RUN_HOUR * int(self.hours[idx].sum()))
         batch = _Batch(idx, ids, worker, limit, start + limit, cap)
-        try:
-            worker.post(msg, batch.deadline)
-        except WorkerTimeout as exc:
-            batch.error = exc
+        # behind another batch, the twin reads this one once it has answered that one: a
+        # rest not written by then is written when that answer is read (_land)
+        if not worker.post(msg, batch.deadline if after is None else after.deadline):
+            batch.unsent = True
+            if after is None:
+                batch.error = WorkerTimeout("the twin stopped reading its input")
         return batch
 
     def _collect(self, batch: _Batch, behind: _Batch | None) -> tuple[list[Any] | None,
@@ -730,8 +743,9 @@ class WorkerPool:
         if redo is None:
             return None, None
         if behind is not None:
-            if behind.error is None:
-                behind.deadline = time.monotonic() + behind.limit  # its turn at the twin
+            behind.deadline = time.monotonic() + behind.limit  # its turn at the twin
+            if behind.unsent and not behind.worker.flush(behind.deadline):
+                behind.error = WorkerTimeout("the twin stopped reading its input")
             if redo or behind.error is not None:
                 results, failure = self._collect(behind, None)
                 if failure is not None:
