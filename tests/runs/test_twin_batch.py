@@ -13,6 +13,7 @@ import io
 import json
 import re
 import sys
+import time
 
 import numpy as np
 import pandas as pd
@@ -29,6 +30,7 @@ from helpers.twins import (
     stamps,
 )
 
+from twinfalsify.runs import worker as worker_mod
 from twinfalsify.runs.protocol import (
     ProtocolError,
     check_hello,
@@ -232,6 +234,107 @@ def test_batch_time_limit_scales_with_its_length():
                                 progress=False)
     assert list(res.status) == ["ok"] * 5
     assert sorted(_batches(res.message)) == [0, 4, 4, 4, 4]
+
+
+# -- two batches in flight: the next batch is sent before the previous answer is read --
+
+def _in_flight_at_most(monkeypatch) -> list[int]:
+    """Patch Worker so that the returned list ends holding the most simulate_batch messages
+    a worker had unanswered at once (an answer read closes the oldest)."""
+    out = [0]
+    open_ = {}
+
+    def post(self, msg, deadline):
+        open_[id(self)] = open_.get(id(self), 0) + 1
+        out[0] = max(out[0], open_[id(self)])
+        return real_post(self, msg, deadline)
+
+    def answer(self, *args, **kwargs):
+        if open_.get(id(self)):
+            open_[id(self)] -= 1
+        return real_answer(self, *args, **kwargs)
+
+    real_post, real_answer = worker_mod.Worker.post, worker_mod.Worker.answer
+    monkeypatch.setattr(worker_mod.Worker, "post", post)
+    monkeypatch.setattr(worker_mod.Worker, "answer", answer)
+    return out
+
+
+def _turns_and_pipelined(monkeypatch, cmd, n, **kw):
+    """The same call taking turns (one batch at a time) and with batches in flight."""
+    x0, doses, _ = make_inputs(n)
+    seeds = np.arange(500, 500 + n, dtype=np.uint64)  # one run per X_0: runs in seed order
+    kw = {"env": ENV, "progress": False, "fail_fast_runs": 0, "max_restarts": 0, **kw}
+    with monkeypatch.context() as m:
+        m.setattr(worker_mod, "BATCHES_IN_FLIGHT", 1)
+        most = _in_flight_at_most(m)
+        turns = simulate_via_protocol(cmd, x0, doses, seeds, **kw)
+        assert most[0] == 1
+    most = _in_flight_at_most(monkeypatch)
+    piped = simulate_via_protocol(cmd, x0, doses, seeds, **kw)
+    assert most[0] == 2  # really two batches out at once
+    return turns, piped
+
+
+def _same(turns, piped) -> None:
+    np.testing.assert_array_equal(piped.status, turns.status)
+    np.testing.assert_array_equal(piped.features, turns.features)
+    np.testing.assert_array_equal(piped.clamped, turns.clamped)
+    assert [_strip(m) for m in piped.message] == [_strip(m) for m in turns.message]
+
+
+def test_batches_in_flight_give_the_values_of_taking_turns(monkeypatch):
+    """Run 0 plain (starts the worker), then batches of 4 sent ahead of their answers."""
+    turns, piped = _turns_and_pipelined(monkeypatch, [*FAULTY, "--batch=4", "--no-stamp"],
+                                        23, workers=2)
+    _same(turns, piped)
+    assert (piped.status == "ok").all()
+
+
+@pytest.mark.parametrize(("modes", "failing"), [
+    # seeds 500.. are runs 0..: run 0 plain (starts the worker), batches [1-4] [5-8] [9-11]
+    (["--mode=crash:502"], [2]),  # the first batch in flight dies: the second never started
+    (["--mode=crash:505"], [5]),  # the second dies after the first was answered
+    (["--mode=hang:502"], [2]),  # the first hangs with the second behind it
+    (["--mode=wrong_id:502", "--mode=crash:505"], [2, 5]),  # a retry needs a quiet stream
+    (["--mode=garbage:503", "--mode=non_numeric:506"], [3, 6]),
+], ids=["crash-first", "crash-second", "hang-first", "redo-then-crash", "garbage"])
+def test_a_fault_with_two_batches_in_flight_ends_as_taking_turns(monkeypatch, modes, failing):
+    turns, piped = _turns_and_pipelined(monkeypatch, [*FAULTY, *modes, "--batch=4"], 12,
+                                        timeout_s=0.5, retries=1)
+    _same(turns, piped)
+    assert [i for i, s in enumerate(piped.status) if s != "ok"] == failing
+
+
+def test_a_worker_dying_with_two_batches_in_flight_records_every_run_as_failed(monkeypatch):
+    """Every run after the first crashes the twin: both batches in flight are lost, and
+    each of their runs is retried alone and recorded as failed (none dropped)."""
+    crash = "--mode=crash:" + ",".join(str(s) for s in range(501, 512))
+    turns, piped = _turns_and_pipelined(monkeypatch, [*FAULTY, crash, "--batch=4"], 12,
+                                        retries=1)
+    _same(turns, piped)
+    assert piped.status[0] == "ok"
+    assert list(piped.status[1:]) == ["error"] * 11
+    assert all("exited with code 3" in m and "(failed 2 attempt(s))" in m
+               for m in piped.message[1:])
+
+
+def test_a_batch_behind_a_hung_one_waits_no_longer_than_that_batch():
+    """A message posted behind a request the twin hangs on is written as far as the pipe
+    takes it by the given deadline (the earlier batch's): the rest waits for ``flush``."""
+    worker = worker_mod.start_worker([*FAULTY, "--mode=hang:9"], ENV, 10.0)
+    try:
+        assert worker.post(simulate_request(0, 2, 9), time.monotonic() + 5.0)
+        big = {"op": "simulate_batch",
+               "requests": [simulate_request(i, 4, 10 + i) for i in range(3000)]}  # ~3 MB
+        start = time.monotonic()
+        assert not worker.post(big, start + 0.3)
+        assert not worker.flush(time.monotonic() + 0.2)
+        assert time.monotonic() - start < 2.0
+        with pytest.raises(worker_mod.WorkerTimeout):
+            worker.answer(0.2)
+    finally:
+        worker.kill()
 
 
 def test_protocol_twin_batch_size_option(tmp_path):

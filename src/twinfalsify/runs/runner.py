@@ -22,7 +22,10 @@ vectorised twin is not throttled by one round trip per run. The time limit
 of a batch is ``timeout_s`` x its length; if the worker dies, hangs or
 answers garbage during a batch, it is restarted and the batch's runs are
 retried one by one with plain ``simulate`` requests, so every run still gets
-its own status and message exactly as without batching.
+its own status and message exactly as without batching. Once a run was ok, the
+next batch is sent before the previous answer is read (two in flight at most,
+``runs.worker.BATCHES_IN_FLIGHT``): the twin computes while this process encodes,
+checks and records, instead of each waiting for the other.
 
 The worker processes and the pool they share are ``runs.worker``'s. The protocol is
 described in docs/reference/twin-protocol.md.

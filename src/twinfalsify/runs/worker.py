@@ -25,6 +25,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -63,7 +64,14 @@ DEFAULT_MAX_RESTARTS = 10  # ... or workers were restarted R times before any ru
 DEFAULT_BATCH_SIZE = 500  # runs per simulate_batch message (when the twin allows batches):
 # large enough that the per-message round trip (~ms) is negligible per run, small enough
 # that a batch's JSON (~1 kB per run) and a retry after a failed batch stay cheap
+BATCHES_IN_FLIGHT = 2  # simulate_batch messages a worker may have at once: the next one
+# is sent before the previous answer is read, so the twin computes while the client encodes,
+# checks and records (taking turns, each side idled half the time); 1 = take turns
 _UNITS = {f.name: f.unit for f in schema.FEATURE_TABLE}
+# the contract's range per feature (schema.mark_implausible's), to test a run's values at
+# once: mark_implausible is called only for a run with a value outside it
+_LO = np.array([f.lo for f in schema.FEATURE_TABLE])
+_HI = np.array([f.hi for f in schema.FEATURE_TABLE])
 
 
 class WorkerDied(Exception):
@@ -156,6 +164,7 @@ class Worker:
         self.stderr_tail: deque[str] = deque(maxlen=STDERR_TAIL_LINES)
         self.hello: dict[str, Any] = {}
         self.max_line = MAX_LINE_BYTES  # set per request by ask()
+        self._unsent = memoryview(b"")  # the end of a message post() could not yet write
         self._stop = threading.Event()
         self._threads = [
             threading.Thread(target=self._read_stdout, daemon=True),
@@ -242,16 +251,16 @@ class Worker:
                 else f"worker exited with code {code}")
         return WorkerDied(what + (f"; stderr tail: {tail}" if tail else ""))
 
-    def _send(self, data: bytes, deadline: float) -> None:
-        """Write ``data`` to the twin's stdin by ``deadline`` (a twin that stopped reading
-        must not block the caller)."""
+    def _send(self, data: bytes | memoryview, deadline: float) -> memoryview:
+        """Write ``data`` to the twin's stdin until ``deadline`` (a twin that stopped
+        reading must not block the caller); return what is left unwritten (empty: all)."""
         assert self.proc.stdin is not None
         fd = self.proc.stdin.fileno()
         view = memoryview(data)
         while view:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise WorkerTimeout("the twin stopped reading its input")
+                break
             _, ready, _ = select.select([], [fd], [], min(remaining, PIPE_POLL_S))
             if not ready:
                 continue
@@ -259,6 +268,7 @@ class Worker:
                 view = view[os.write(fd, view):]
             except BlockingIOError:
                 continue
+        return view
 
     def ask(self, msg: dict[str, Any], timeout_s: float,
             max_line: int = MAX_LINE_BYTES) -> dict[str, Any]:
@@ -271,15 +281,39 @@ class Worker:
         self.max_line = max_line
         deadline = time.monotonic() + timeout_s
         try:
-            self._send(encode(msg).encode("utf-8"), deadline)
+            if self._send(encode(msg).encode("utf-8"), deadline):
+                raise WorkerTimeout("the twin stopped reading its input")
         except (OSError, ValueError):  # broken pipe: the worker is gone
             raise self._died() from None
         return self.answer(deadline - time.monotonic())
 
-    def answer(self, timeout_s: float, until: Callable[[], bool] | None = None
-               ) -> dict[str, Any]:
+    def post(self, msg: dict[str, Any], deadline: float) -> bool:
+        """Send one message without waiting for its answer (read later with ``answer``);
+        whether it was written whole by ``deadline`` (else ``flush`` writes the rest).
+
+        Lets the next request go out while the twin still works on the previous one (the
+        twin reads it when it is done with that one). A closed pipe is not raised here: the
+        worker's death shows when its answer is awaited, with its exit code and stderr
+        tail, after any answers it wrote before dying are read.
+        """
+        self._unsent = memoryview(encode(msg).encode("utf-8"))
+        return self.flush(deadline)
+
+    def flush(self, deadline: float) -> bool:
+        """Write what ``post`` left unwritten until ``deadline``; whether all is written."""
+        try:
+            self._unsent = self._send(self._unsent, deadline)
+        except (OSError, ValueError):  # broken pipe: answer() reports the death
+            self._unsent = memoryview(b"")
+        return not self._unsent
+
+    def answer(self, timeout_s: float, until: Callable[[], bool] | None = None,
+               max_line: int | None = None) -> dict[str, Any]:
         """Wait for the next non-blank line (decoded), e.g. the answer to a request
-        ``ask`` timed out on; ``until()`` true ends the wait early (WorkerTimeout)."""
+        ``ask`` timed out on; ``until()`` true ends the wait early (WorkerTimeout).
+        ``max_line``: the cap of the request answered (default: the last ``ask``'s)."""
+        if max_line is not None:
+            self.max_line = max_line
         max_line = self.max_line
         deadline = time.monotonic() + timeout_s
         exited_at: float | None = None
@@ -358,6 +392,20 @@ class Worker:
                 pass
 
 
+@dataclass
+class _Batch:
+    """A simulate_batch message sent to a worker, its answer not yet read."""
+
+    idx: np.ndarray  # its runs, in request order
+    ids: list[str]  # their request ids
+    worker: Worker
+    limit: float  # its time limit: timeout_s x its runs
+    deadline: float  # for its answer; moved to when the twin gets to it (WorkerPool._land)
+    max_line: int  # cap of its answer line
+    unsent: bool = False  # its message is not yet written whole (Worker.flush)
+    error: BaseException | None = None  # the send failed (the twin stopped reading)
+
+
 class WorkerPool:
     """State shared by the worker threads of one simulate_via_protocol call."""
 
@@ -401,6 +449,7 @@ class WorkerPool:
         # Runs a thread takes from the queue at a time: 1 until a hello says
         # how large a batch the twin accepts (every worker runs the same command).
         self.take = 1
+        self.in_flight = BATCHES_IN_FLIGHT
         self.x0, self.doses, self.seeds, self.hours = x0, doses, seeds, hours
         self.timeout_s, self.retries, self.required = timeout_s, retries, tuple(features)
         self.startup_timeout_s = max(timeout_s, STARTUP_TIMEOUT_S)
@@ -521,9 +570,11 @@ class WorkerPool:
             # a value outside the contract's range fails the run when a study stores it
             # (runs.plan.plausible); count it as failed now, for the progress line and the
             # breaker. The result itself is returned as the twin gave it.
-            st, msg = np.array([status], dtype=object), np.array([message], dtype=object)
-            if mark_implausible(self.features[i : i + 1].copy(), st, msg):
-                status, message = str(st[0]), str(msg[0])
+            values = self.features[i]
+            if ((values < _LO) | (values > _HI)).any():  # (NaN, a missing hour, is neither)
+                st, msg = np.array([status], dtype=object), np.array([message], dtype=object)
+                if mark_implausible(self.features[i : i + 1].copy(), st, msg):
+                    status, message = str(st[0]), str(msg[0])
         with self.lock:
             self.counts[status] += 1
             self.settled += 1
@@ -539,13 +590,16 @@ class WorkerPool:
             self._trip(f"its first {self.fail_fast_runs} runs, from {len(self.failed_x0)} "
                        "distinct X_0, all failed")
 
-    def _request(self, i: int, request_id: str) -> dict[str, Any]:
+    def _request(self, i: int, request_id: str, x0: list[float] | None = None,
+                 doses: list[list[float]] | None = None) -> dict[str, Any]:
+        """The simulate request of run ``i``; ``x0`` and ``doses``: its rows as lists, when
+        the caller converted a whole batch's at once."""
         hours = int(self.hours[i])
         request = {
             "op": "simulate",
             "id": request_id,
-            "x0": dict(zip(FEATURES, self.x0[i].tolist(), strict=True)),
-            "doses": self.doses[i, :hours].tolist(),
+            "x0": dict(zip(FEATURES, self.x0[i].tolist() if x0 is None else x0, strict=True)),
+            "doses": self.doses[i, :hours].tolist() if doses is None else doses[:hours],
             "hours": hours,
             "seed": int(self.seeds[i]),
         }
@@ -598,59 +652,129 @@ class WorkerPool:
             i, last_status, f"{last_message} (failed {attempts} attempt(s))", None
         )
 
-    def _run_batch(self, slot: int, worker: Worker, idx: np.ndarray) -> None:
-        """Runs ``idx`` in one simulate_batch message; failed ones one by one.
+    def _launch(self, worker: Worker, idx: np.ndarray, after: _Batch | None) -> _Batch:
+        """Send runs ``idx`` as one simulate_batch message; its answer is read by ``_land``.
 
-        A batch that cannot be trusted as a whole (worker died, hung, or the
-        answer's envelope is broken) costs a restart and every run is retried
-        alone, with the usual attempts; a batch attempt never counts against
-        a run (the culprit is unknown). Within a well-formed answer, a result
-        that breaks the rules is retried alone (and gets exactly the error
-        message a plain request gets); valid results are kept.
+        With ``after`` (a batch still in flight on the same worker) the twin reads this one
+        when it has answered that one: the send may wait that long too.
         """
         ids = [f"{i}.0" for i in idx]
-        redo: list[int] = []
+        x0s, doses = self.x0[idx].tolist(), self.doses[idx].tolist()
+        msg = {"op": "simulate_batch",
+               "requests": [self._request(int(i), r, x, d)
+                            for i, r, x, d in zip(idx, ids, x0s, doses, strict=True)]}
+        limit = self.timeout_s * len(idx)
+        start = time.monotonic() if after is None else after.deadline
+        cap = max(MAX_LINE_BYTES, MAX_LINE_BYTES_PER_RUN_HOUR * int(self.hours[idx].sum()))
+        batch = _Batch(idx, ids, worker, limit, start + limit, cap)
+        # behind another batch, the twin reads this one once it has answered that one: a
+        # rest not written by then is written when that answer is read (_land)
+        if not worker.post(msg, batch.deadline if after is None else after.deadline):
+            batch.unsent = True
+            if after is None:
+                batch.error = WorkerTimeout("the twin stopped reading its input")
+        return batch
+
+    def _collect(self, batch: _Batch, behind: _Batch | None) -> tuple[list[Any] | None,
+                                                                        BaseException | None]:
+        """The batch's results (envelope checked), or what went wrong with the worker."""
+        if batch.error is not None:
+            return None, batch.error
+        cap = batch.max_line if behind is None else max(batch.max_line, behind.max_line)
         try:
-            answer = worker.ask(
-                {"op": "simulate_batch",
-                 "requests": [self._request(int(i), r) for i, r in zip(idx, ids, strict=True)]},
-                self.timeout_s * len(idx),
-                max(MAX_LINE_BYTES,
-                    MAX_LINE_BYTES_PER_RUN_HOUR * int(self.hours[idx].sum())),
-            )
-            results = check_results(answer, len(idx))
+            answer = batch.worker.answer(batch.deadline - time.monotonic(), max_line=cap)
+            return check_results(answer, len(batch.idx)), None
         except (WorkerTimeout, WorkerDied, ProtocolError) as exc:
-            self._count({WorkerTimeout: "hangs", WorkerDied: "crashes"}.get(
-                type(exc), "protocol_breaks"))
+            return None, exc
+
+    def _batch_failed(self, slot: int, batch: _Batch, exc: BaseException) -> None:
+        """A batch not to be trusted as a whole: count it, drop its worker, say so."""
+        self._count({WorkerTimeout: "hangs", WorkerDied: "crashes"}.get(
+            type(exc), "protocol_breaks"))
+        if self.workers.get(slot) is batch.worker:
             if isinstance(exc, WorkerDied):
                 self.workers.pop(slot, None)
             else:
                 self._drop_worker(slot)
-            what = {WorkerTimeout: f"no answer within {self.timeout_s * len(idx):g} s",
-                    WorkerDied: str(exc)}.get(type(exc), f"malformed answer: {exc}")
-            print(f"[twin] batch of {len(idx)} runs failed ({what}); worker restarted, "
-                  "retrying its runs one by one", file=sys.stderr, flush=True)
-            redo = [int(i) for i in idx]
-        else:
-            declared = worker.hello["declared_units"]
-            for i, request_id, result in zip(idx, ids, results, strict=True):
-                i = int(i)
-                try:
-                    checked = self._check(result, request_id, i, declared)
-                except ProtocolError:
-                    redo.append(i)
-                    continue
-                if self.stop.is_set() and self.error is not None:
-                    return
-                self._record(i, checked.status, checked.message, checked.values,
-                             checked.clamped)
-        for i in redo:
+        what = {WorkerTimeout: str(exc) or f"no answer within {batch.limit:g} s",
+                WorkerDied: str(exc)}.get(type(exc), f"malformed answer: {exc}")
+        print(f"[twin] batch of {len(batch.idx)} runs failed ({what}); worker restarted, "
+              "retrying its runs one by one", file=sys.stderr, flush=True)
+
+    def _keep(self, batch: _Batch, results: list[Any]) -> list[int] | None:
+        """Record the valid results of a well-formed answer; return the runs to redo alone
+        (None: the pool is stopping on an error, record nothing more)."""
+        declared = batch.worker.hello["declared_units"]
+        redo: list[int] = []
+        for i, request_id, result in zip(batch.idx, batch.ids, results, strict=True):
+            i = int(i)
+            try:
+                checked = self._check(result, request_id, i, declared)
+            except ProtocolError:
+                redo.append(i)
+                continue
+            if self.stop.is_set() and self.error is not None:
+                return None
+            self._record(i, checked.status, checked.message, checked.values, checked.clamped)
+        return redo
+
+    def _land(self, slot: int, batch: _Batch, behind: _Batch | None = None
+              ) -> tuple[_Batch | None, np.ndarray | None]:
+        """Read and record the answer of ``batch``; failed runs are retried one by one.
+
+        A batch that cannot be trusted as a whole (worker died, hung, or the answer's
+        envelope is broken) costs a restart and every run is retried alone, with the usual
+        attempts; a batch attempt never counts against a run (the culprit is unknown).
+        Within a well-formed answer, a result that breaks the rules is retried alone (and
+        gets exactly the error message a plain request gets); valid results are kept.
+
+        ``behind``: the next batch, already sent to the same worker. If ``batch`` fails, the
+        twin never started ``behind`` (it answers in order), so its runs are handed back
+        (second value) to be sent again as they would have been. Otherwise ``behind`` is
+        returned still in flight, its time limit starting now, unless runs must be retried
+        alone first (a plain request needs a quiet stream): then it is landed here too.
+        """
+        results, failure = self._collect(batch, behind)
+        if failure is not None:
+            self._batch_failed(slot, batch, failure)
+            self._redo(slot, [int(i) for i in batch.idx])
+            return None, (None if behind is None else behind.idx)
+        redo = self._keep(batch, results)
+        if redo is None:
+            return None, None
+        if behind is not None:
+            behind.deadline = time.monotonic() + behind.limit  # its turn at the twin
+            if behind.unsent and not behind.worker.flush(behind.deadline):
+                behind.error = WorkerTimeout("the twin stopped reading its input")
+            if redo or behind.error is not None:
+                results, failure = self._collect(behind, None)
+                if failure is not None:
+                    self._batch_failed(slot, behind, failure)
+                    more: list[int] | None = [int(i) for i in behind.idx]
+                else:
+                    more = self._keep(behind, results)
+                    if more is None:
+                        return None, None
+                redo += more
+                behind = None
+        self._redo(slot, redo)
+        return behind, None
+
+    def _redo(self, slot: int, runs: list[int]) -> None:
+        for i in runs:
             if self.stop.is_set():
                 return
             self._run_one(slot, i)
 
-    def _run_runs(self, slot: int, runs: np.ndarray) -> None:
-        """Runs in the given order: batches when the twin allows them, else one by one."""
+    def _run_runs(self, slot: int, runs: np.ndarray, flight: _Batch | None = None
+                  ) -> _Batch | None:
+        """Runs in the given order: batches when the twin allows them, else one by one.
+
+        Once a run was ok (the circuit breaker no longer judges the twin), the next batch
+        is sent before the answer to the previous one is read, so the twin computes while
+        this thread encodes, checks and records: at most ``in_flight`` batches are out, and
+        the one still out is returned (``flight``, given back with the next runs).
+        """
         pos = 0
         while pos < len(runs) and not self.stop.is_set():
             worker = self.workers.get(slot)
@@ -658,11 +782,25 @@ class WorkerPool:
             if worker is not None:  # (a worker is (re)started by a plain run)
                 cap = worker.hello["capabilities"].get("batch", 1)
                 size = min(cap, self.batch_size, len(runs) - pos)
+            if size <= 1 and flight is not None:  # a plain request needs a quiet stream
+                flight, _ = self._land(slot, flight)
+                continue
             if size <= 1:
                 self._run_one(slot, int(runs[pos]))
-            else:
-                self._run_batch(slot, worker, runs[pos : pos + size])
+                pos += 1
+                continue
+            assert worker is not None
+            new = self._launch(worker, runs[pos : pos + size], flight)
             pos += size
+            if flight is not None:
+                flight, again = self._land(slot, flight, new)
+                if again is not None:  # never started: send it again, as before
+                    runs, pos = np.concatenate([again, runs[pos:]]), 0
+            else:
+                flight = new
+            if flight is not None and not (self.in_flight > 1 and self.any_ok):
+                flight, _ = self._land(slot, flight)
+        return flight
 
     def _next_chunk(self, slot: int) -> np.ndarray | None:
         """The runs a worker does next (call with the lock held); None when none are left.
@@ -691,12 +829,15 @@ class WorkerPool:
 
     def thread_main(self, slot: int) -> None:
         try:
+            flight: _Batch | None = None  # a batch sent, its answer not yet read
             while not self.stop.is_set():
                 with self.lock:
                     chunk = self._next_chunk(slot)
                 if chunk is None:
                     break
-                self._run_runs(slot, chunk)
+                flight = self._run_runs(slot, chunk, flight)
+            if flight is not None and not self.stop.is_set():
+                self._land(slot, flight)
         except BaseException as exc:  # noqa: BLE001 - re-raised by the caller
             with self.lock:
                 if self.error is None:
