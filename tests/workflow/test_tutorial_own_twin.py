@@ -83,8 +83,8 @@ def test_tutorial_commands_run_as_written(tmp_path):
     fitted = pd.read_parquet(r / "twins" / "fitted" / "results.parquet")
     (hit,) = fitted[fitted["rejected"]].itertuples()
     assert (hit.method, hit.kind, hit.outcome, hit.t) == ("betting", "causal", "paCO2", 1)
-    assert f"{hit.p_value:.1e}" == "9.4e-05"
-    assert "betting, causal, paCO2 at hour 1,\np = 9.4e-5" in page
+    assert f"{hit.p_value:.1e}" == "1.5e-04"
+    assert "betting, causal, paCO2 at hour 1,\np = 1.5e-4" in page
     assert not (r / "figures" / "confounding.png").exists()  # the synthetic world only
     # the deliberately wrong twin (heart rate +15 /min per hour): the conformance check names
     # its drift, and the study rejects it, only on heart rate
