@@ -194,3 +194,34 @@ def test_betting_worst_case_uses_one_order_and_the_family_tuning(bets):
     np.testing.assert_allclose(got_lo, ref_lo, rtol=2e-3)
     np.testing.assert_allclose(got_up, ref_up, rtol=2e-3)
     assert (np.minimum(got_lo, got_up)[f > 0] < 1).sum() >= 2  # completions exercised
+
+
+def test_betting_is_tuned_per_family_in_run_tests():
+    """run_tests tunes the betting test at alpha / (2H) with H the parameter sets of each
+    hypothesis' own family (kind), with and without failed runs: each family's p-values equal
+    a separate call on that family alone at its own tuning, and differ from tuning over all."""
+    from functools import partial
+
+    from twinfalsify.inference.betting import betting_test, default_tune_alpha
+
+    rng = np.random.default_rng(21)
+    s, f = _samples(rng, 60)
+    keep = np.flatnonzero((s.n > 0) & (s.nhat > 0))
+    s, f = s.take(keep), f[keep]
+    h = len(s)
+    kind = np.where(np.arange(h) % 3 == 0, "manski", "causal")
+    hyps = pd.DataFrame({"hyp_id": np.arange(h), "kind": kind, "outcome": "HR", "t": 1})
+    for n_failed in (np.zeros(h, np.int64), np.where(np.arange(h) % 2 == 0, f, 0)):
+        res = run_tests(hyps, s, n_failed, make_methods({"betting": {}}, 0, alpha=0.1),
+                        alpha=0.1)
+        for k in ("causal", "manski"):
+            idx = np.flatnonzero(kind == k)
+            alone = partial(betting_test, alpha=0.1,
+                            tune_alpha=default_tune_alpha(len(idx), 0.1))
+            ref = failure_pvalues(alone, s.take(idx), n_failed[idx], "conservative")
+            for side, p in zip(("lo", "up"), ref, strict=True):
+                got = res[(res["side"] == side)].set_index("hyp_id").loc[idx, "p_value"]
+                np.testing.assert_array_equal(got.to_numpy(), p)
+    pooled, _ = betting_test(s, alpha=0.1, tune_alpha=default_tune_alpha(h, 0.1))
+    got = res[res["side"] == "lo"].set_index("hyp_id").loc[np.arange(h), "p_value"].to_numpy()
+    assert not np.array_equal(got[got < 1], pooled[got < 1])
