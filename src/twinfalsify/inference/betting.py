@@ -627,12 +627,13 @@ def betting_test(
     """Betting p-values (p_lo, p_up), shape (H,) each (see module doc); p = 1 if n or nhat is 0.
 
     ``tune_alpha``: the level the bets are tuned for (default alpha / (2H), ``alpha`` the
-    family's level ``testing.alpha``); ``bets``:
-    "plugin" (default: WSR's predictable plug-in bets; ``order`` "data" (default) puts each
-    sample in its data order, no seed enters; "seed": a ``seed``-ed random order; ``orders``
-    K > 1 averages the terminal capitals of K orders; K = 1 (default): one order, running
-    maximum by default) or "mixture" (order-free grid mixture of ``grid`` constant bets
-    spaced by ``grid_ratio``; ``seed`` is not used); ``tol``: accuracy of log K* (p's
+    family's level ``testing.alpha``); ``bets``: "star" (default: target-recalculating bets,
+    module doc "STaR bets"; one order, running maximum by default), "plugin" (WSR's
+    predictable plug-in bets; ``orders`` K > 1 averages the terminal capitals of K orders;
+    K = 1 (default): one order, running maximum by default; for both, ``order`` "data"
+    (default) puts each sample in its data order, keyed by content and the study seed;
+    "seed": a ``seed``-ed random order) or "mixture" (order-free grid mixture of ``grid``
+    constant bets spaced by ``grid_ratio``; ``seed`` is not used); ``tol``: accuracy of log K* (p's
     relative accuracy), p is never understated. Hypotheses are processed in chunks (memory);
     a hypothesis' orders depend on its key only, so chunking does not change any p-value.
     """

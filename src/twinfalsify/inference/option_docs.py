@@ -53,8 +53,9 @@ METHOD_DOCS: dict[str, str] = {
     "bootstrap": "the paper's bootstrap test: asymptotic, with no finite-sample guarantee; "
                  "its p-values come in steps of 2 / n_resamples",
     "betting": "exact test from betting confidence bounds (Waudby-Smith & Ramdas 2024); the "
-               "default bets are WSR's predictable plug-in bets in the data's order, keyed by "
-               "the study seed (testing.order_seed)",
+               "default bets are target-recalculating (after STaR-Bets, Voracek & Orabona "
+               "2025), each sample in the data's order, keyed by the study seed "
+               "(testing.order_seed)",
     "bernstein": "exact test from the empirical-Bernstein bound (Maurer & Pontil 2009); no "
                  "options",
 }

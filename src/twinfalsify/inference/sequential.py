@@ -19,10 +19,9 @@ inequality (Ville 1939; Howard et al. 2021, Ann. Stat. 49(2):1055-1080) gives
 P(exists t: K_t >= 1/delta) <= delta: the bounds hold uniformly over time, hence at any
 stopping time, however data-dependent.
 
-Observational side: the fixed-sample betting bound (``betting.ordered_sides``, fixed-n
-plug-in bets in the data order of the fixed test, keyed by the study seed: ``betting``
-module doc "Order";
-running maximum; Ville).
+Observational side: the fixed-sample betting bound (``betting.ordered_sides``, the fixed
+test's default target-recalculating bets in its data order, keyed by the study seed:
+``betting`` module doc "Order" and "STaR bets"; running maximum; Ville).
 Union rule: reject H_lo at level a when some m has max_t K+_lo(m) >= 2/a and
 max_{t<=tau} K-_twin,t(m) >= 2/a; p = min(1, 2/K*) with K* the crossing of the two curves
 (``betting.crossing``), evaluated with the twin data revealed
