@@ -46,7 +46,6 @@ from twinfalsify.inference.betting import (
     capital_bound,
     ordered_sides,
 )
-from twinfalsify.inference.capital import OrderedSide
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
 DISTRIBUTIONS = {  # name: (draw(rng, shape), mean)
@@ -97,8 +96,8 @@ def lower_bounds(x: np.ndarray, alpha: float) -> tuple[np.ndarray, dict[str, np.
     """(x in the data order, {method: lower bound}) for every row of x."""
     r, n = x.shape
     delta = alpha / 2
-    st = ordered_sides(_samples(x), delta, order="data", star=True)[2]
-    tw = OrderedSide(st.x, st.lam, st.offsets)  # the same values with plug-in bets
+    tw = ordered_sides(_samples(x), delta, order="data")[2]
+    st = ordered_sides(_samples(x), delta, order="data", star=True)[2]  # the same order
     xo = tw.x.reshape(x.shape)
     lev = np.full(r, math.log(1 / delta))
     out = {

@@ -77,23 +77,38 @@ def test_failed_run_sits_at_its_place_in_the_order():
     assert lo2.x[int(np.flatnonzero(perm == 0)[0])] == 1.0
 
 
-def _brute_capital(x_plan, failed, perm, lam_n, delta0, m, sign, worst):
-    """log max_t K(m) by a loop: runs in plan order permuted by ``perm``; each bet is WSR's
-    fixed-n plug-in of the successful values before it (tuned for lam_n), truncated at c/m
-    (c/(1-m)); a failed run contributes x = ``worst`` (None: the value in ``x_plan``)."""
+def _plugin_bet(lam_n):
+    """WSR's fixed-n plug-in bet tuned for lam_n values (before the truncation)."""
+    def bet(s2, need, left, mm, delta0):
+        return math.sqrt(2 * math.log(1 / delta0) / (lam_n * s2))
+    return bet
+
+
+def _star_bet(s2, need, left, mm, delta0, r0=0.5):
+    """``capital.star_log_capital``'s bet: sized for the need left over the places left,
+    decaying exponentially below r0 (before the truncation)."""
+    b = math.sqrt(2 * max(need, r0) / (left * min(s2, mm * (1 - mm))))
+    return b * math.exp(min(need - r0, 0.0))
+
+
+def _brute_capital(x_plan, failed, perm, delta0, m, sign, worst, bet):
+    """log max_t K(m) by a loop: runs in plan order permuted by ``perm``; each bet is
+    ``bet(sigma2 of the successful values before it, need left, places left, m, delta0)``,
+    truncated at c/m (K- as K+ of 1 - x at 1 - m); a failed run contributes x = ``worst``
+    (None: the value in ``x_plan``)."""
     c = 0.9
     xs, fs = x_plan[perm], failed[perm]
+    mm = m if sign > 0 else 1 - m
     seen: list[float] = []
     mus: list[float] = []
     logk, best = 0.0, 0.0
-    for x, f in zip(xs, fs, strict=True):
-        i = len(seen)
-        s2 = (0.25 + sum((v - mu) ** 2 for v, mu in zip(seen, mus, strict=True))) / (i + 1)
-        lam = math.sqrt(2 * math.log(1 / delta0) / (lam_n * s2))
-        lam = min(lam, c / m) if sign > 0 else min(lam, c / (1 - m))
+    for i, (x, f) in enumerate(zip(xs, fs, strict=True)):
+        k = len(seen)
+        s2 = (0.25 + sum((v - mu) ** 2 for v, mu in zip(seen, mus, strict=True))) / (k + 1)
+        b = min(bet(s2, math.log(1 / delta0) - logk, len(xs) - i, mm, delta0), c / mm)
         v = worst if (f and worst is not None) else x
         if not (f and worst is None and np.isnan(x)):  # a failed run that does not enter
-            logk += math.log1p(sign * lam * (v - m))
+            logk += math.log1p(b * ((v if sign > 0 else 1 - v) - mm))
         best = max(best, logk)
         if not f:
             seen.append(x)
@@ -114,45 +129,19 @@ def test_running_max_in_place_matches_a_brute_force_loop_and_dominates():
     delta0 = 0.005
     tw_lo, tw_up = worst_twin_sides(s, delta0, order="data")
     perm = _order_keys(np.array([60]), s.hyp_keys, np.zeros(1, np.int64), None, 2)
+    plug = _plugin_bet(60)
     for m in (0.15, 0.3, 0.45, 0.7):
         got_lo = log_capital(tw_lo, np.array([m]), -1)[0]
         got_up = log_capital(tw_up, np.array([m]), +1)[0]
-        assert got_lo == pytest.approx(_brute_capital(x_obs, failed, perm, 60, delta0, m, -1,
-                                                      1.0), rel=1e-10, abs=1e-12)
-        assert got_up == pytest.approx(_brute_capital(x_obs, failed, perm, 60, delta0, m, +1,
-                                                      0.0), rel=1e-10, abs=1e-12)
+        assert got_lo == pytest.approx(_brute_capital(x_obs, failed, perm, delta0, m, -1, 1.0,
+                                                      plug), rel=1e-10, abs=1e-12)
+        assert got_up == pytest.approx(_brute_capital(x_obs, failed, perm, delta0, m, +1, 0.0,
+                                                      plug), rel=1e-10, abs=1e-12)
         for _ in range(20):  # completions: each failed run absent (NaN) or some value
             comp = np.where(failed, np.where(rng.random(60) < 0.5, np.nan, rng.random(60)), x)
-            true_lo = _brute_capital(comp, failed, perm, 60, delta0, m, -1, None)
-            true_up = _brute_capital(comp, failed, perm, 60, delta0, m, +1, None)
+            true_lo = _brute_capital(comp, failed, perm, delta0, m, -1, None, plug)
+            true_up = _brute_capital(comp, failed, perm, delta0, m, +1, None, plug)
             assert got_lo <= true_lo + 1e-12 and got_up <= true_up + 1e-12
-
-
-def _brute_star_capital(x_plan, failed, perm, delta0, m, sign, worst):
-    """As :func:`_brute_capital` with target-recalculating bets: the variance of the
-    successful values before each place, the places left n_c - i + 1 and the capital so far
-    (``capital.star_log_capital``'s formula); K- as K+ of 1 - x at 1 - m."""
-    c, r0, big_r = 0.9, 0.5, math.log(1 / delta0)
-    xs, fs = x_plan[perm], failed[perm]
-    n_c = len(xs)
-    mm = m if sign > 0 else 1 - m
-    seen: list[float] = []
-    mus: list[float] = []
-    logk, best = 0.0, 0.0
-    for i, (x, f) in enumerate(zip(xs, fs, strict=True)):
-        k = len(seen)
-        s2 = (0.25 + sum((v - mu) ** 2 for v, mu in zip(seen, mus, strict=True))) / (k + 1)
-        need = big_r - logk
-        b = math.sqrt(2 * max(need, r0) / ((n_c - i) * min(s2, mm * (1 - mm))))
-        b = min(b * math.exp(min(need - r0, 0.0)), c / mm)
-        v = worst if (f and worst is not None) else x
-        if not (f and worst is None and np.isnan(x)):  # a failed run that does not enter
-            logk += math.log1p(b * ((v if sign > 0 else 1 - v) - mm))
-        best = max(best, logk)
-        if not f:
-            seen.append(x)
-            mus.append((0.5 + sum(seen)) / (len(seen) + 1))
-    return best
 
 
 def test_star_bets_in_place_match_a_brute_force_loop_and_dominate():
@@ -172,17 +161,17 @@ def test_star_bets_in_place_match_a_brute_force_loop_and_dominate():
         for m in (0.05, 0.15, 0.3, 0.45, 0.7):
             got_lo = log_capital(tw_lo, np.array([m]), -1)[0]
             got_up = log_capital(tw_up, np.array([m]), +1)[0]
-            assert got_lo == pytest.approx(_brute_star_capital(
-                x_obs, failed, perm, delta0, m, -1, 1.0), rel=1e-10, abs=1e-12)
-            assert got_up == pytest.approx(_brute_star_capital(
-                x_obs, failed, perm, delta0, m, +1, 0.0), rel=1e-10, abs=1e-12)
+            assert got_lo == pytest.approx(_brute_capital(
+                x_obs, failed, perm, delta0, m, -1, 1.0, _star_bet), rel=1e-10, abs=1e-12)
+            assert got_up == pytest.approx(_brute_capital(
+                x_obs, failed, perm, delta0, m, +1, 0.0, _star_bet), rel=1e-10, abs=1e-12)
             for _ in range(20):
                 comp = np.where(failed, np.where(rng.random(60) < 0.5, np.nan,
                                                  rng.random(60)), x)
-                assert got_lo <= _brute_star_capital(comp, failed, perm, delta0, m, -1,
-                                                     None) + 1e-12
-                assert got_up <= _brute_star_capital(comp, failed, perm, delta0, m, +1,
-                                                     None) + 1e-12
+                assert got_lo <= _brute_capital(comp, failed, perm, delta0, m, -1, None,
+                                                _star_bet) + 1e-12
+                assert got_up <= _brute_capital(comp, failed, perm, delta0, m, +1, None,
+                                                _star_bet) + 1e-12
 
 
 def test_without_failed_runs_the_order_and_p_values_do_not_change():

@@ -317,13 +317,19 @@ def ordered_sides(
     follow, twin = samples.follow, samples.twin
     y_lo = samples.y_lo
 
-    def _star(x: np.ndarray, offsets: np.ndarray, sig2: np.ndarray) -> StarBets | None:
-        return star_bets(x, offsets, d0, sig2=sig2) if star else None
+    def side(x: np.ndarray, offsets: np.ndarray, bet: np.ndarray) -> OrderedSide:
+        """``bet``: the plug-in bets, or with ``star`` the variances STaR bets read."""
+        if star:
+            return OrderedSide(x, None, offsets, star=star_bets(x, offsets, d0, sig2=bet))
+        return OrderedSide(x, bet, offsets)
+
+    def bets(x: np.ndarray, o: np.ndarray, h0: int, h1: int, lay=None) -> np.ndarray:
+        var = running_moments(x, o, lay)[1]
+        return var if star else plugin_bets(x, o, d0[h0:h1], c, lay, sig2=var)
 
     def obs() -> tuple[OrderedSide, OrderedSide]:
         x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
         l_lo, l_up = np.empty(offs[-1]), np.empty(offs[-1])
-        v_lo, v_up = (np.empty(offs[-1] if star else 0) for _ in range(2))
         for h0, h1 in chunk_ranges(n):
             o = offs[h0: h1 + 1] - offs[h0]
             lay = flat_layout(o)  # shared by Y_lo and Y_up
@@ -348,18 +354,13 @@ def ordered_sides(
             sl = slice(offs[h0], offs[h1])
             x_lo[sl] = np.where(fill, 0.0, xf)
             x_up[sl] = np.where(fill, 1.0, xf)
-            for x, lam, v in ((x_lo, l_lo, v_lo), (x_up, l_up, v_up)):
-                var = running_moments(x[sl], o, lay)[1]
-                lam[sl] = plugin_bets(x[sl], o, d0[h0:h1], c, lay, sig2=var)
-                if star:
-                    v[sl] = var
-        return (OrderedSide(x_lo, l_lo, offs, star=_star(x_lo, offs, v_lo)),
-                OrderedSide(x_up, l_up, offs, star=_star(x_up, offs, v_up)))
+            l_lo[sl] = bets(x_lo[sl], o, h0, h1, lay)
+            l_up[sl] = bets(x_up[sl], o, h0, h1, lay)
+        return side(x_lo, offs, l_lo), side(x_up, offs, l_up)
 
     def twin_side() -> OrderedSide:
         sizes = twin.sizes
         xt, lt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
-        vt = np.empty(twin.offsets[-1] if star else 0)
         for h0, h1 in chunk_ranges(sizes):
             o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
             sl = slice(twin.offsets[h0], twin.offsets[h1])
@@ -367,11 +368,8 @@ def ordered_sides(
             v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
                  - y_lo[h0:h1][g]) / width[h0:h1][g]
             xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)]
-            var = running_moments(xt[sl], o)[1]
-            lt[sl] = plugin_bets(xt[sl], o, d0[h0:h1], c, sig2=var)
-            if star:
-                vt[sl] = var
-        return OrderedSide(xt, lt, twin.offsets, star=_star(xt, twin.offsets, vt))
+            lt[sl] = bets(xt[sl], o, h0, h1)
+        return side(xt, twin.offsets, lt)
 
     with ThreadPoolExecutor(2) as pool:
         f_obs, f_tw = pool.submit(obs), pool.submit(twin_side)
@@ -447,13 +445,16 @@ def worst_twin_sides(
     with np.errstate(divide="ignore"):
         k = 2.0 * np.log(1.0 / d0) / sizes  # tuned for n_c
     sig2 = prev[slot]
-    lam = np.sqrt(k[gid] / sig2)
     copies = max(int(orders), 1)
     x_lo, x_up = np.where(failed, 1.0, x), np.where(failed, 0.0, x)
-    return (OrderedSide(x_lo, lam, cand.offsets, copies,
-                        star_bets(x_lo, cand.offsets, d0, sig2=sig2) if star else None),
-            OrderedSide(x_up, lam, cand.offsets, copies,
-                        star_bets(x_up, cand.offsets, d0, sig2=sig2) if star else None))
+    if star:
+        return (OrderedSide(x_lo, None, cand.offsets, copies,
+                            star_bets(x_lo, cand.offsets, d0, sig2=sig2)),
+                OrderedSide(x_up, None, cand.offsets, copies,
+                            star_bets(x_up, cand.offsets, d0, sig2=sig2)))
+    lam = np.sqrt(k[gid] / sig2)
+    return (OrderedSide(x_lo, lam, cand.offsets, copies),
+            OrderedSide(x_up, lam, cand.offsets, copies))
 
 
 def _check_grid(grid: int, ratio: float) -> None:

@@ -101,18 +101,7 @@ def _resample_sums(
         raise ValueError("bootstrap: cannot draw from an empty group")
     starts = values.offsets[rows]
     m_row = counts.max(axis=1)
-    order = np.argsort(m_row, kind="stable")
-    i = 0
-    while i < n_rows:
-        m_first = int(m_row[order[i]])
-        j = i + 1
-        # extend the block while it fits the budget and sizes stay within 25 %
-        while j < n_rows:
-            m_j = int(m_row[order[j]])
-            if (j + 1 - i) * n_b * max(m_j, 1) > _CHUNK_DRAWS or m_j > 1.25 * m_first + 16:
-                break
-            j += 1
-        block = order[i:j]
+    for block in draw_blocks(m_row, n_b):
         m = int(m_row[block].max())
         if m > 0:
             r = block.size
@@ -128,8 +117,26 @@ def _resample_sums(
             g = values.values.take(idx, mode="clip").reshape(r, n_b, m)
             np.copyto(g, 0.0, where=np.arange(m) >= counts[block][:, :, None])
             out[block] = g.sum(axis=2)
-        i = j
     return out
+
+
+def draw_blocks(m_row: np.ndarray, n_b: int) -> list[np.ndarray]:
+    """Rows grouped into blocks drawn together, in increasing order of their largest count
+    ``m_row``: a block grows while its draws fit ``_CHUNK_DRAWS`` and its counts stay within
+    25 % of its first (the random stream is read block after block, so the blocks fix it)."""
+    order = np.argsort(m_row, kind="stable")
+    blocks, i, n_rows = [], 0, len(m_row)
+    while i < n_rows:
+        m_first = int(m_row[order[i]])
+        j = i + 1
+        while j < n_rows:
+            m_j = int(m_row[order[j]])
+            if (j + 1 - i) * n_b * max(m_j, 1) > _CHUNK_DRAWS or m_j > 1.25 * m_first + 16:
+                break
+            j += 1
+        blocks.append(order[i:j])
+        i = j
+    return blocks
 
 
 def _split_clipped(values: Ragged, y_lo: np.ndarray, y_up: np.ndarray):

@@ -41,10 +41,11 @@ class OrderedSide:
     """
 
     x: np.ndarray  # (N,) values in [0, 1], group after group
-    lam: np.ndarray  # (N,) predictable bets lambda_i (before the m-dependent truncation)
+    lam: np.ndarray | None  # (N,) plug-in bets lambda_i (before the m-dependent truncation);
+    # None with target-recalculating bets, which are formed from ``star`` for each m
     offsets: np.ndarray  # (K G + 1,)
     copies: int = 1
-    star: StarBets | None = None  # target-recalculating bets (then ``lam`` is not used)
+    star: StarBets | None = None  # target-recalculating bets (then ``lam`` is None)
 
     @property
     def sizes(self) -> np.ndarray:
@@ -64,7 +65,8 @@ class OrderedSide:
         star = None if self.star is None else StarBets(
             self.star.sig2[keep], self.star.target[rows])
         return OrderedSide(
-            self.x[keep], self.lam[keep], np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            self.x[keep], None if self.lam is None else self.lam[keep],
+            np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             self.copies, star,
         )
 
