@@ -38,3 +38,23 @@ def resample_sums_reference(
             keep = np.arange(m) < counts[block][:, :, None]
             out[block] = np.where(keep, g, 0.0).sum(axis=2)
     return out
+
+
+def hashed_order_reference(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray,
+                           seed: int | None, salt: int) -> np.ndarray:
+    """``betting._hashed_order`` in its first form: the whole flat array's hash keys in numpy,
+    then ``np.lexsort((U, gid))``."""
+    from twinfalsify.inference.betting import _DATA_ORDER, _mix64
+
+    sizes = np.asarray(sizes, np.int64)
+    gid = np.repeat(np.arange(len(sizes)), sizes)
+    pos = np.arange(int(sizes.sum()), dtype=np.int64) - np.repeat(
+        np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
+    head = _DATA_ORDER if seed is None else (int(seed) & 0xFFFFFFFF) << 8
+    with np.errstate(over="ignore"):
+        base = _mix64(np.array([head | salt], dtype=np.uint64))
+        hk = _mix64(base ^ np.asarray(keys, np.int64).astype(np.uint64))
+        hk = _mix64(hk ^ (np.asarray(copy, np.int64).astype(np.uint64) << np.uint64(40)))
+        u = _mix64(hk[gid] ^ pos.astype(np.uint64))
+    frac = (u >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+    return np.lexsort((frac, gid))

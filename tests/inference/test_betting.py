@@ -419,6 +419,39 @@ def test_data_order_is_seed_free():
     assert not np.allclose(seeded[0], seeded[1])  # a seeded order does see the seed
 
 
+def test_hashed_order_equals_a_lexsort_of_the_flat_hash_keys():
+    """The compiled per-group sort gives the permutation of one stable lexsort of all hash
+    keys (the reference), bit for bit: empty and one-element groups, copies, seeded and
+    seedless, both salts, negative and large keys."""
+    from helpers.reference import hashed_order_reference
+
+    from twinfalsify.inference.betting import _hashed_order
+
+    rng = np.random.default_rng(11)
+    for case in range(12):
+        g = int(rng.integers(1, 40))
+        sizes = rng.integers(0, 300, g)
+        sizes[rng.random(g) < 0.2] = rng.integers(0, 2)
+        keys = rng.integers(-2**62, 2**62, g)
+        copy = rng.integers(0, 4, g)
+        for seed in (None, int(rng.integers(0, 2**31))):
+            for salt in (1, 2):
+                fast = _hashed_order(sizes, keys, copy, seed, salt)
+                ref = hashed_order_reference(sizes, keys, copy, seed, salt)
+                np.testing.assert_array_equal(fast, ref, err_msg=f"case {case}, seed {seed}")
+
+
+def test_stable_argsort_keeps_tied_keys_in_index_order():
+    """Ties in the 53-bit keys (astronomically rare for hashes, so forced here) keep the
+    index order, as the stable sort of the reference does."""
+    from twinfalsify.inference.betting import _stable_argsort
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 7, 500):
+        bits = rng.integers(0, 5, n).astype(np.uint64)  # many ties
+        np.testing.assert_array_equal(_stable_argsort(bits), np.argsort(bits, kind="stable"))
+
+
 def test_data_order_places_followers_at_their_positions():
     """Brute force: the observational sequence is the stay-order sequence (followers at
     follow_pos, fill values elsewhere) permuted by the seedless hash; the listing order of

@@ -186,6 +186,26 @@ def test_without_failed_runs_the_order_and_p_values_do_not_change():
         assert all(u.tobytes() == v.tobytes() for u, v in zip(a, b, strict=True))
 
 
+def test_naming_the_bets_does_not_change_how_failed_runs_are_handled():
+    """``bets: star`` written out (as a config does) places the failed runs exactly as the
+    default does, bit for bit; plug-in bets place them too (their own p-values), and the
+    mixture, which has no order, takes the completions instead (other p-values)."""
+    from twinfalsify.inference.failures import _places_failed_runs
+
+    rng = np.random.default_rng(8)
+    xs = [rng.beta(2, 3, k) for k in (30, 50, 70)]
+    s = _placed(xs, [rng.random(len(v)) < 0.15 for v in xs])
+    f = s.failed_run.sizes
+    assert f.sum() > 0
+    tuned = partial(betting_test, tune_alpha=1e-3)
+    named = partial(betting_test, tune_alpha=1e-3, bets="star")
+    a = failure_pvalues(tuned, s, f, "conservative")
+    b = failure_pvalues(named, s, f, "conservative")
+    assert all(u.tobytes() == v.tobytes() for u, v in zip(a, b, strict=True))
+    assert _places_failed_runs(named) and _places_failed_runs(partial(betting_test, bets="plugin"))
+    assert not _places_failed_runs(partial(betting_test, bets="mixture"))
+
+
 def _clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     a = 1 - level
     lo = 0.0 if k == 0 else float(beta_dist.ppf(a / 2, k, n - k + 1))

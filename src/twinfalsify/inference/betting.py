@@ -161,6 +161,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide re-exported
@@ -253,20 +254,56 @@ def _hashed_order(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: i
     other hypotheses are tested with it. ``seed`` None: a fixed
     hash domain instead of a seed (the data order, module doc): the permutation is then a
     fixed function of (hypothesis key, copy, group size), so applied to a sequence that is
-    already i.i.d. it leaves it i.i.d. whatever the hash.
+    already i.i.d. it leaves it i.i.d. whatever the hash. U is the top 53 bits of
+    splitmix64(h_g ^ position); equal U keep their positions' order (a stable sort).
     """
     sizes = np.asarray(sizes, np.int64)
-    gid = np.repeat(np.arange(len(sizes)), sizes)
-    pos = np.arange(int(sizes.sum()), dtype=np.int64) - np.repeat(
-        np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
     head = _DATA_ORDER if seed is None else (int(seed) & 0xFFFFFFFF) << 8
     with np.errstate(over="ignore"):
         base = _mix64(np.array([head | salt], dtype=np.uint64))
         hk = _mix64(base ^ np.asarray(keys, np.int64).astype(np.uint64))
         hk = _mix64(hk ^ (np.asarray(copy, np.int64).astype(np.uint64) << np.uint64(40)))
-        u = _mix64(hk[gid] ^ pos.astype(np.uint64))
-    frac = (u >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)  # [0, 1)
-    return np.lexsort((frac, gid))
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    return _order_within_groups(hk, offsets)
+
+
+@numba.njit(cache=True, nogil=True)
+def _mix64_one(z: np.uint64) -> np.uint64:  # pragma: no cover - compiled
+    """:func:`_mix64` of one value (uint64 arithmetic wraps, as numpy's does)."""
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@numba.njit(cache=True, nogil=True)
+def _stable_argsort(bits: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """argsort of uint64 keys, equal keys in ascending index (what a stable sort gives)."""
+    idx = np.argsort(bits)
+    n, i = len(bits), 0
+    while i < n:
+        j = i + 1
+        while j < n and bits[idx[j]] == bits[idx[i]]:
+            j += 1
+        if j - i > 1:
+            idx[i:j] = np.sort(idx[i:j])
+        i = j
+    return idx
+
+
+@numba.njit(cache=True, nogil=True)
+def _order_within_groups(hk: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Flat permutation: group g's positions sorted by the top 53 bits of
+    splitmix64(hk[g] ^ position), ties by position. One group at a time (cache-sized),
+    the same permutation as ``np.lexsort((U, gid))`` over the whole flat array."""
+    out = np.empty(offsets[-1], np.int64)
+    for g in range(len(offsets) - 1):
+        a, n = offsets[g], offsets[g + 1] - offsets[g]
+        bits = np.empty(n, np.uint64)
+        for p in range(n):
+            bits[p] = _mix64_one(hk[g] ^ np.uint64(p)) >> np.uint64(11)
+        out[a: a + n] = _stable_argsort(bits) + a
+    return out
 
 
 def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.ndarray]:

@@ -87,7 +87,12 @@ from functools import partial
 
 import numpy as np
 
-from twinfalsify.inference.betting import betting_test, default_tune_alpha
+from twinfalsify.inference.betting import (
+    DEFAULT_BETS,
+    PLACING_BETS,
+    betting_test,
+    default_tune_alpha,
+)
 from twinfalsify.inference.hoeffding import hoeffding_pvalue, hoeffding_test
 from twinfalsify.inference.samples import HypothesisSamples, Ragged
 
@@ -235,11 +240,12 @@ def family_tuned(method: Method, h: int) -> Method:
 
 
 def _places_failed_runs(method: Method) -> bool:
-    """True for the betting test with plug-in bets (it places failed runs, module doc)."""
+    """True for the betting test with bets that place failed runs (``betting.PLACING_BETS``:
+    plug-in and STaR, the default, whether named or not; module doc)."""
     if method is betting_test:
         return True
     return (isinstance(method, partial) and method.func is betting_test
-            and method.keywords.get("bets", "plugin") == "plugin")
+            and method.keywords.get("bets", DEFAULT_BETS) in PLACING_BETS)
 
 
 def _unique_rows(rows: list[np.ndarray]) -> list[np.ndarray]:
