@@ -441,6 +441,34 @@ def test_hashed_order_equals_a_lexsort_of_the_flat_hash_keys():
                 np.testing.assert_array_equal(fast, ref, err_msg=f"case {case}, seed {seed}")
 
 
+def test_rescaled_moments_equal_clip_rescale_order_and_running_moments():
+    """The one-pass kernel gives what clipping, rescaling, ordering by a permutation and
+    ``running_moments`` give in numpy, bit for bit: empty groups, fill values, values
+    outside [y_lo, y_up], ties and negative ranges."""
+    from twinfalsify.inference.capital import rescaled_moments, running_moments
+
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        sizes = rng.integers(0, 60, int(rng.integers(1, 12)))
+        offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        g = len(sizes)
+        y_lo = rng.normal(0, 5, g)
+        y_up = y_lo + rng.uniform(0.5, 10, g)
+        staged = np.round(rng.normal(0, 8, offs[-1]), 1)  # coarse: ties and clipped values
+        real = rng.random(offs[-1]) < 0.7
+        perm = np.concatenate([o + rng.permutation(k) for o, k in zip(offs[:-1], sizes)]
+                              ).astype(np.int64)
+        gid = np.repeat(np.arange(g), sizes)
+        width = y_up - y_lo
+        for fill in (0.0, 1.0):
+            xs = np.where(real, (np.clip(staged, y_lo[gid], y_up[gid]) - y_lo[gid]) / width[gid],
+                          fill)[perm]
+            x, sig2 = np.empty(offs[-1]), np.empty(offs[-1])
+            rescaled_moments(staged, real, perm, offs, y_lo, y_up, width, fill, x, sig2)
+            assert x.tobytes() == xs.tobytes()
+            assert sig2.tobytes() == running_moments(xs, offs)[1].tobytes()
+
+
 def test_stable_argsort_keeps_tied_keys_in_index_order():
     """Ties in the 53-bit keys (astronomically rare for hashes, so forced here) keep the
     index order, as the stable sort of the reference does."""

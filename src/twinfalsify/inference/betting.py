@@ -174,6 +174,7 @@ from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide
     flat_layout,
     log_capital,
     plugin_bets,
+    rescaled_moments,
     running_moments,
     segment_cumsum,
     star_bets,
@@ -360,53 +361,50 @@ def ordered_sides(
             return OrderedSide(x, None, offsets, star=star_bets(x, offsets, d0, sig2=bet))
         return OrderedSide(x, bet, offsets)
 
-    def bets(x: np.ndarray, o: np.ndarray, h0: int, h1: int, lay=None) -> np.ndarray:
-        var = running_moments(x, o, lay)[1]
-        return var if star else plugin_bets(x, o, d0[h0:h1], c, lay, sig2=var)
+    def bets(x: np.ndarray, o: np.ndarray, h0: int, h1: int, var: np.ndarray) -> None:
+        """``var`` (a chunk's variances) becomes the plug-in bets, unless STaR bets read it."""
+        if not star:
+            var[:] = plugin_bets(x, o, d0[h0:h1], c, sig2=var)
 
     def obs() -> tuple[OrderedSide, OrderedSide]:
         x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
-        l_lo, l_up = np.empty(offs[-1]), np.empty(offs[-1])
+        v_lo, v_up = np.empty(offs[-1]), np.empty(offs[-1])
         for h0, h1 in chunk_ranges(n):
             o = offs[h0: h1 + 1] - offs[h0]
-            lay = flat_layout(o)  # shared by Y_lo and Y_up
-            gid, t = lay
             fsl = slice(follow.offsets[h0], follow.offsets[h1])
-            fv = follow.values[fsl]
             fg = np.repeat(np.arange(h1 - h0), nf[h0:h1])
+            is_f = np.zeros(o[-1], dtype=bool)
             if use_pos:  # each follower at its content-keyed position among the entering ones
                 at = o[:-1][fg] + samples.follow_pos.values[fsl].astype(np.int64)
-                is_f = np.zeros(len(gid), dtype=bool)
                 is_f[at] = True
                 if is_f.sum() != len(at):
                     raise ValueError("betting: two followers share a position (follow_pos)")
-            else:
-                is_f = t <= nf[h0:h1][gid]
-                at = is_f
-            xf = np.zeros(len(gid))
-            xf[at] = (np.clip(fv, y_lo[h0:h1][fg], samples.y_up[h0:h1][fg])
-                      - y_lo[h0:h1][fg]) / width[h0:h1][fg]
+            else:  # the followers first, in their listed order
+                at = o[:-1][fg] + (np.arange(len(fg)) - np.repeat(
+                    follow.offsets[h0:h1] - follow.offsets[h0], nf[h0:h1]))
+                is_f[at] = True
+            staged = np.zeros(o[-1])
+            staged[at] = follow.values[fsl]
             perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 1)
-            xf, fill = xf[perm], ~is_f[perm]
             sl = slice(offs[h0], offs[h1])
-            x_lo[sl] = np.where(fill, 0.0, xf)
-            x_up[sl] = np.where(fill, 1.0, xf)
-            l_lo[sl] = bets(x_lo[sl], o, h0, h1, lay)
-            l_up[sl] = bets(x_up[sl], o, h0, h1, lay)
-        return side(x_lo, offs, l_lo), side(x_up, offs, l_up)
+            bounds = (y_lo[h0:h1], samples.y_up[h0:h1], width[h0:h1])
+            rescaled_moments(staged, is_f, perm, o, *bounds, 0.0, x_lo[sl], v_lo[sl])
+            rescaled_moments(staged, is_f, perm, o, *bounds, 1.0, x_up[sl], v_up[sl])
+            bets(x_lo[sl], o, h0, h1, v_lo[sl])
+            bets(x_up[sl], o, h0, h1, v_up[sl])
+        return side(x_lo, offs, v_lo), side(x_up, offs, v_up)
 
     def twin_side() -> OrderedSide:
         sizes = twin.sizes
-        xt, lt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
+        xt, vt = np.empty(twin.offsets[-1]), np.empty(twin.offsets[-1])
         for h0, h1 in chunk_ranges(sizes):
             o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
             sl = slice(twin.offsets[h0], twin.offsets[h1])
-            g = np.repeat(np.arange(h1 - h0), sizes[h0:h1])
-            v = (np.clip(twin.values[sl], y_lo[h0:h1][g], samples.y_up[h0:h1][g])
-                 - y_lo[h0:h1][g]) / width[h0:h1][g]
-            xt[sl] = v[_order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)]
-            lt[sl] = bets(xt[sl], o, h0, h1)
-        return side(xt, twin.offsets, lt)
+            perm = _order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)
+            rescaled_moments(twin.values[sl], np.ones(o[-1], dtype=bool), perm, o, y_lo[h0:h1],
+                             samples.y_up[h0:h1], width[h0:h1], 0.0, xt[sl], vt[sl])
+            bets(xt[sl], o, h0, h1, vt[sl])
+        return side(xt, twin.offsets, vt)
 
     with ThreadPoolExecutor(2) as pool:
         f_obs, f_tw = pool.submit(obs), pool.submit(twin_side)

@@ -102,6 +102,42 @@ def running_moments(
     return mu_prev, sig2_prev
 
 
+@numba.njit(cache=True, nogil=True)
+def rescaled_moments(staged: np.ndarray, real: np.ndarray, perm: np.ndarray,
+                     offsets: np.ndarray, y_lo: np.ndarray, y_up: np.ndarray,
+                     width: np.ndarray, fill: float, x: np.ndarray,
+                     sig2: np.ndarray) -> None:  # pragma: no cover - compiled
+    """One pass of what rescaling, ordering and :func:`running_moments` do in several.
+
+    Element i of group g (flat, ``offsets``) is ``staged[perm[i]]`` rescaled to
+    (clip(y, y_lo[g], y_up[g]) - y_lo[g]) / width[g] when ``real[perm[i]]``, else ``fill``;
+    written to ``x``, and its predictable variance sigma2_{i-1} to ``sig2``. The sums run
+    over the whole flat array and restart by subtraction, as :func:`segment_cumsum` does,
+    so every value equals the numpy form's bit for bit.
+    """
+    cs, cs2, prev = 0.0, 0.0, 0.25
+    for g in range(len(offsets) - 1):
+        a, b = offsets[g], offsets[g + 1]
+        lo, up, w = y_lo[g], y_up[g], width[g]
+        base, base2 = cs, cs2
+        for i in range(a, b):
+            j = perm[i]
+            if real[j]:
+                v = staged[j]
+                v = v if v > lo else lo  # numpy's clip: min(max(v, lo), up)
+                v = v if v < up else up
+                xi = (v - lo) / w
+            else:
+                xi = fill
+            x[i] = xi
+            t = i - a + 1
+            cs += xi
+            mu = (0.5 + (cs - base)) / (t + 1)
+            cs2 += (xi - mu) * (xi - mu)
+            sig2[i] = 0.25 if i == a else prev
+            prev = (0.25 + (cs2 - base2)) / (t + 1)
+
+
 def plugin_bets(
     x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
     layout: tuple[np.ndarray, np.ndarray] | None = None, sig2: np.ndarray | None = None,
