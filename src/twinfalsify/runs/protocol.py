@@ -15,6 +15,11 @@ One JSON object per line in each direction; logs go to stderr, never stdout.
         "clamped": {feature: [given, used], ...}}
     -> {"op": "simulate_batch", "requests": [<simulate request>, ...]}   # optional
     <- {"op": "results", "results": [<result answer>, ...]}             # same order
+    -> {"op": "simulate_batch", "requests": [...], "answer": "arrays"}  # optional
+    <- {"op": "results", "answer": "arrays", "ids": [...], "status": [...],
+        "message": [...], "hours": [s_1, ...], "features": [name, ...],
+        "values": base64(float64 little-endian, run by run, hour by hour, feature by
+        feature), "clamped": [{...}, ...], "truncated": [bool, ...]}   # or as above
     -> {"op": "shutdown"}
     <- {"op": "bye"}
 
@@ -26,12 +31,16 @@ its completed hours (``runs.truncation``): it answers status ok with those hours
 "timeout" when a run exceeds its time limit. ``simulate_batch`` is an optional
 capability within version 1: the caller sends it only to a twin whose hello advertises
 ``capabilities.batch``
-> 1 (``serve_forever`` answers it for every twin). See docs/reference/twin-protocol.md
-for the full description.
+> 1 (``serve_forever`` answers it for every twin). ``"answer": "arrays"`` is asked only of
+a twin whose hello advertises ``capabilities.arrays``: the same results as columns, the
+numbers as raw float64 bytes, which spares both sides formatting and parsing every number
+as text; a twin may still answer with the plain list, and the caller accepts both. See
+docs/reference/twin-protocol.md for the full description.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import sys
@@ -45,6 +54,7 @@ from twinfalsify.runs.truncation import hours_needed
 
 PROTOCOL_VERSION = 1
 FAILURE_STATUSES = ("init_failed", "irreversible", "error")
+ARRAYS = "arrays"  # the capability, and the simulate_batch "answer" asking for it
 
 
 class ProtocolError(RuntimeError):
@@ -68,6 +78,61 @@ def decode(line: str) -> dict[str, Any]:
     return msg
 
 
+def _hour_objects(fields: dict[str, Any]) -> dict[str, Any]:
+    """Result fields with ``hours`` as the protocol's objects {feature: value}.
+
+    A server's simulate functions may return ``values`` (array (hours, len(columns))) and
+    ``columns`` instead of ``hours``: converted here, once, only for a plain answer."""
+    if "values" not in fields:
+        return fields
+    out = {k: v for k, v in fields.items() if k not in ("values", "columns")}
+    cols = list(fields["columns"])
+    out["hours"] = [dict(zip(cols, row, strict=True))
+                    for row in np.asarray(fields["values"], float).tolist()]
+    return out
+
+
+def _arrays_answer(requests: list[dict[str, Any]], fields: list[dict[str, Any]]
+                   ) -> dict[str, Any] | None:
+    """The "arrays" form of a batch's results, or None when the runs do not share one list
+    of features (the plain answer is sent instead)."""
+    cols: list[str] | None = None
+    blocks = []
+    for f in fields:
+        if "values" in f:
+            names, vals = list(f["columns"]), np.asarray(f["values"], float)
+        else:
+            hours = f.get("hours") or []
+            if not hours:
+                blocks.append(np.empty((0, 0)))
+                continue
+            names = list(hours[0])
+            if any(list(h) != names for h in hours):
+                return None
+            vals = np.array([list(h.values()) for h in hours], dtype=float)
+        if len(vals) == 0:
+            blocks.append(np.empty((0, 0)))
+            continue
+        if cols is None:
+            cols = names
+        elif names != cols:
+            return None
+        blocks.append(vals)
+    cols = cols or []
+    flat = np.concatenate([b.reshape(-1) for b in blocks]) if blocks else np.empty(0)
+    return {
+        "op": "results", "answer": ARRAYS,
+        "ids": [r.get("id") for r in requests],
+        "status": [f["status"] for f in fields],
+        "message": [f.get("message", "") for f in fields],
+        "hours": [len(b) for b in blocks],
+        "features": cols,
+        "values": base64.b64encode(flat.astype("<f8").tobytes()).decode("ascii"),
+        "clamped": [f.get("clamped", {}) for f in fields],
+        "truncated": [bool(f.get("truncated", False)) for f in fields],
+    }
+
+
 def _error_fields(exc: BaseException) -> dict[str, Any]:
     return {"status": "error", "message": f"{type(exc).__name__}: {exc}", "hours": [],
             "clamped": {}}
@@ -82,7 +147,7 @@ def _simulate_one(
                 "message": f"request must be an object, got {type(request).__name__}",
                 "hours": [], "clamped": {}}
     try:
-        fields = simulate(request)
+        fields = _hour_objects(simulate(request))
     except Exception as exc:  # noqa: BLE001 - reported to the caller, never swallowed
         fields = _error_fields(exc)
     return {"op": "result", "id": request.get("id"), **fields}
@@ -113,8 +178,12 @@ def _answer_batch(
                   "batch one request at a time", file=sys.stderr, flush=True)
             fields = None
         if fields is not None and len(fields) == len(requests):
+            if msg.get("answer") == ARRAYS:
+                packed = _arrays_answer(requests, fields)
+                if packed is not None:
+                    return packed
             return {"op": "results", "results": [
-                {"op": "result", "id": r.get("id"), **f}
+                {"op": "result", "id": r.get("id"), **_hour_objects(f)}
                 for r, f in zip(requests, fields, strict=True)
             ]}
     return {"op": "results", "results": [_simulate_one(simulate, r) for r in requests]}
@@ -245,6 +314,8 @@ def check_hello(
         isinstance(caps["max_hours"], int) and caps["max_hours"] >= 1
     ):
         raise ProtocolError("capability 'max_hours' must be a positive integer or absent")
+    if not isinstance(caps.get(ARRAYS, False), bool):
+        raise ProtocolError(f"capability {ARRAYS!r} must be true or false")
     batch = caps.get("batch", 1)
     if not (isinstance(batch, int) and not isinstance(batch, bool) and batch >= 1):
         raise ProtocolError(
@@ -413,7 +484,11 @@ def check_result(
             raise ProtocolError(
                 f"truncated after hour {len(rows)}, but a continue_while path still holds "
                 f"(hour {need} is needed)")
-    clamped = msg.get("clamped", {})
+    return CheckedResult(status, message, values, _clamped_text(msg.get("clamped", {})))
+
+
+def _clamped_text(clamped: Any) -> str:
+    """A result's ``clamped`` record as JSON text; raises unless {feature: [given, used]}."""
     if not isinstance(clamped, dict) or not all(
         isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)
         for v in clamped.values()
@@ -421,5 +496,111 @@ def check_result(
         raise ProtocolError(
             f"field 'clamped' must be an object {{feature: [given, used]}}, got {clamped!r}"
         )
-    return CheckedResult(status, message, values,
-                         json.dumps(clamped, sort_keys=True) if clamped else "{}")
+    return json.dumps(clamped, sort_keys=True) if clamped else "{}"
+
+
+def check_array_results(
+    msg: dict[str, Any],
+    request_ids: Sequence[str],
+    hours: Sequence[int],
+    required: Sequence[str],
+    declared: Collection[str],
+    columns: Sequence[str],
+    continue_while: Sequence[list | None] | None = None,
+) -> list[CheckedResult | ProtocolError]:
+    """Validate a simulate_batch answer in the "arrays" form; one entry per request.
+
+    The answer's envelope (op, the lists' lengths, the feature list, the bytes of
+    ``values``) must hold, else ProtocolError is raised: the batch as a whole cannot be
+    trusted. Each run is then held to check_result's rules (id, status, message, at most
+    the hours asked for and all of them for "ok" unless truncated as allowed, finite
+    values, ``clamped``); a run that breaks one gets its ProtocolError in the list, to be
+    asked again on its own, as a broken result of a plain answer is.
+    """
+    n = len(request_ids)
+    if msg.get("op") != "results" or msg.get("answer") != ARRAYS:
+        raise ProtocolError(f"expected op 'results' with answer 'arrays', got op "
+                            f"{msg.get('op')!r}: {msg.get('message', '')}")
+    lists = {k: msg.get(k) for k in ("ids", "status", "message", "hours", "clamped",
+                                      "truncated")}
+    for key, value in lists.items():
+        if not isinstance(value, list) or len(value) != n:
+            raise ProtocolError(f"field {key!r} must be a list of {n} entries (one per "
+                                f"request), got {type(value).__name__}"
+                                f"{f' of {len(value)}' if isinstance(value, list) else ''}")
+    feats = msg.get("features")
+    if not isinstance(feats, list) or not all(isinstance(f, str) for f in feats) \
+            or len(set(feats)) != len(feats):
+        raise ProtocolError("field 'features' must be a list of distinct feature names")
+    unknown = sorted(set(feats) - set(declared))
+    if unknown:
+        raise ProtocolError(f"field 'features' has unknown feature(s) {', '.join(unknown)}")
+    counts = lists["hours"]
+    if not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in counts):
+        raise ProtocolError("field 'hours' must hold each run's number of hours (integers >= 0)")
+    try:
+        raw = base64.b64decode(msg.get("values"), validate=True)
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError(f"field 'values' must be base64 text: {exc}") from None
+    total = sum(counts) * len(feats)
+    if len(raw) != 8 * total:
+        raise ProtocolError(f"field 'values' holds {len(raw) // 8} numbers; the hours and "
+                            f"features ask for {total}")
+    flat = np.frombuffer(raw, dtype="<f8").astype(float)
+    missing = [name for name in required if name not in feats]
+    index = {name: j for j, name in enumerate(columns)}
+    src = np.array([j for j, f in enumerate(feats) if f in index], dtype=int)
+    dst = np.array([index[feats[j]] for j in src], dtype=int)
+    out: list[CheckedResult | ProtocolError] = []
+    start = 0
+    for i in range(n):
+        c = counts[i]
+        block = flat[start: start + c * len(feats)].reshape(c, len(feats))
+        start += c * len(feats)
+        try:
+            out.append(_array_result(
+                lists["ids"][i], lists["status"][i], lists["message"][i], block,
+                lists["clamped"][i], lists["truncated"][i], request_ids[i], int(hours[i]),
+                missing, feats, src, dst, columns,
+                None if continue_while is None else continue_while[i]))
+        except ProtocolError as exc:
+            out.append(exc)
+    return out
+
+
+def _array_result(rid: Any, status: Any, message: Any, block: np.ndarray, clamped: Any,
+                  truncated: Any, request_id: str, hours: int, missing: list[str],
+                  feats: list[str], src: np.ndarray, dst: np.ndarray,
+                  columns: Sequence[str], continue_while: list | None) -> CheckedResult:
+    """One run of an "arrays" answer under check_result's rules."""
+    if rid != request_id:
+        raise ProtocolError(f"answer id {rid!r} does not match request id {request_id!r}")
+    if status not in RESULT_STATUSES:
+        raise ProtocolError(f"status {status!r} is not one of {', '.join(RESULT_STATUSES)}")
+    if not isinstance(message, str):
+        raise ProtocolError(f"field 'message' must be a string, got {type(message).__name__}")
+    s = len(block)
+    if s > hours:
+        raise ProtocolError(f"{s} hours returned, more than the {hours} asked for")
+    if s and missing:
+        raise ProtocolError(f"hour 1 lacks feature(s) {', '.join(missing)}")
+    if not np.isfinite(block).all():
+        h, j = np.argwhere(~np.isfinite(block))[0]
+        raise ProtocolError(f"hour {h + 1} feature {feats[j]} is not a finite number: "
+                            f"{block[h, j]!r}")
+    cut = status == "ok" and s < hours
+    if cut and (truncated is not True or continue_while is None):
+        raise ProtocolError(
+            f"status ok but only {s} of {hours} hours returned "
+            "(a twin that stops early must report init_failed, irreversible or error, or "
+            "'truncated': true when the request's continue_while allows it)"
+        )
+    values = np.full((s, len(columns)), np.nan)
+    values[:, dst] = block[:, src]
+    if cut:
+        need = hours_needed(continue_while, values, hours, columns)
+        if s < need:
+            raise ProtocolError(
+                f"truncated after hour {s}, but a continue_while path still holds "
+                f"(hour {need} is needed)")
+    return CheckedResult(status, message, values, _clamped_text(clamped))

@@ -12,7 +12,9 @@ and let CI replay the same study in seconds.
 
 What is recorded is what the runner received: values after the twin's own unit
 conversion, its statuses, messages and ``clamped`` records, as JSON numbers (so a
-replayed float is bit-identical). The twin's stderr passes through. If the twin dies,
+replayed float is bit-identical). The one change the proxy makes: it withholds the
+``arrays`` capability from the hello it passes on, so every answer comes as results
+with JSON numbers, which is what it records. The twin's stderr passes through. If the twin dies,
 the proxy exits with the twin's exit code, so the runner sees the same failure.
 """
 
@@ -27,7 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from twinfalsify.runs.protocol import ProtocolError, decode, encode
+from twinfalsify.runs.protocol import ARRAYS, ProtocolError, decode, encode
 
 ANSWERING_OPS = ("hello", "simulate", "simulate_batch", "shutdown")
 
@@ -42,6 +44,19 @@ def _pairs(msg: dict[str, Any], answer: dict[str, Any]) -> list[dict[str, Any]]:
         return [{"request": r, "answer": a}
                 for r, a in zip(msg.get("requests") or [], answer["results"], strict=False)]
     return []
+
+
+def _without_arrays(hello_line: str) -> str:
+    """The hello answer without the ``arrays`` capability (answers then come as results
+    with JSON numbers, the form recorded); any other line unchanged."""
+    try:
+        hello = json.loads(hello_line)
+    except json.JSONDecodeError:
+        return hello_line
+    caps = hello.get("capabilities") if isinstance(hello, dict) else None
+    if not isinstance(caps, dict) or ARRAYS not in caps:
+        return hello_line
+    return encode({**hello, "capabilities": {k: v for k, v in caps.items() if k != ARRAYS}})
 
 
 def proxy(command: Sequence[str], out_dir: Path, stdin: IO[str], stdout: IO[str]) -> int:
@@ -67,6 +82,8 @@ def proxy(command: Sequence[str], out_dir: Path, stdin: IO[str], stdout: IO[str]
             answer_line = twin.stdout.readline()
             if not answer_line:
                 break  # the twin died: the runner sees end of stream, as without the proxy
+            if msg["op"] == "hello":
+                answer_line = _without_arrays(answer_line)
             stdout.write(answer_line)
             stdout.flush()
             try:

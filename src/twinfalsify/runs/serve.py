@@ -5,9 +5,10 @@
 builds the twin with ``twinfalsify.runs.registry.make_twin(name, spec,
 context_dir)`` and answers protocol v1 requests (docs/reference/twin-protocol.md) on
 stdin/stdout until "shutdown" or end of input. The hello advertises
-``capabilities.batch`` = BATCH_MAX: a ``simulate_batch`` message is answered
-with ONE vectorised ``twin.simulate`` call per group of requests of equal
-length (``batch_handler``), a plain ``simulate`` as a batch of one run.
+``capabilities.batch`` = BATCH_MAX and ``capabilities.arrays``: a ``simulate_batch``
+message is answered with ONE vectorised ``twin.simulate`` call per group of requests of
+equal length (``batch_handler``), in arrays when the caller asks for them; a plain
+``simulate`` as a batch of one run.
 Builtin twins key their noise by (seed, dose prefix) and compute every run's
 numbers independently of the others in its batch, so the numbers are the
 same bits as in one vectorised in-process call, however runs are batched.
@@ -26,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from twinfalsify import __version__
-from twinfalsify.runs.protocol import serve_forever
+from twinfalsify.runs.protocol import ARRAYS, serve_forever
 from twinfalsify.runs.truncation import hours_needed, parse_paths
 from twinfalsify.schema import FEATURE_TABLE, FEATURES, T_MAX, TWIN_STATUSES, ContractError
 from twinfalsify.twins.base import Twin
@@ -62,11 +63,12 @@ def _parse(request: dict[str, Any]) -> Parsed:
     return [float(x0[f]) for f in FEATURES], doses, hours, seed, paths
 
 
-def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
+def _fields(rows: np.ndarray, status: Any, message: Any, clamped: Any,
             hours: int) -> dict[str, Any]:
-    """One run -> the result fields (status, message, hours, clamped).
+    """One run -> the result fields (status, message, values in FEATURES order, clamped);
+    ``serve_forever`` turns the values into the answer's hour objects or arrays.
 
-    rows: the run's finite leading hours (values in FEATURES order); a twin
+    rows: the run's finite leading hours (s, len(FEATURES)); a twin
     status outside TWIN_STATUSES (or "timeout", which only the caller may
     give) and "ok" with fewer than ``hours`` finite hours become "error".
     """
@@ -82,8 +84,7 @@ def _fields(rows: list[list[float]], status: Any, message: Any, clamped: Any,
         clamped = {} if clamped == "{}" else json.loads(clamped)
     else:
         clamped = dict(clamped or {})
-    return {"status": status, "message": message,
-            "hours": [dict(zip(FEATURES, row, strict=True)) for row in rows],
+    return {"status": status, "message": message, "values": rows, "columns": FEATURES,
             "clamped": clamped}
 
 
@@ -103,10 +104,10 @@ def _simulate_parsed(twin: Twin, parsed: list[Parsed]) -> list[dict[str, Any]]:
                          f"{(len(parsed), hours, len(FEATURES))}")
     # hours completed = the leading hours whose every feature is finite
     done = np.cumprod(np.isfinite(res.features).all(axis=2), axis=1).sum(axis=1)
-    values = res.features.tolist()  # Python floats, once for the whole batch
+    values = np.asarray(res.features, dtype=float)
     out = []
     for k, p in enumerate(parsed):
-        rows = values[k][: done[k]]
+        rows = values[k, : done[k]]
         cut = hours
         if p[4] is not None and res.status[k] == "ok" and len(rows) == hours:
             cut = hours_needed(p[4], rows, hours)
@@ -177,6 +178,7 @@ def handlers(
             caps["max_hours"] = max_hours
         if batch is not None:
             caps["batch"] = batch
+            caps[ARRAYS] = True  # serve_forever answers a batch in arrays when asked
         return {
             "name": twin.name,
             "version": version,
