@@ -179,6 +179,13 @@ def _graph_cached(src: str) -> dict[str, set[str]]:
     return graph(Path(src))
 
 
+@lru_cache(maxsize=8)
+def _modules_cached(src: str) -> dict[str, Path]:
+    """:func:`modules`, listed once per process, as the import graph is (a workflow start
+    fingerprints every rule's code; the files' bytes are read each time)."""
+    return modules(Path(src))
+
+
 def _excluded(name: str, exclude: Iterable[str]) -> bool:
     return any(name == e or name.startswith(e + ".") for e in exclude)
 
@@ -208,7 +215,7 @@ def code_fingerprint(script: str | Path, src: str | Path, extra: Iterable[str] =
     to the same bytes (``git checkout``) keeps it: times are never compared.
     """
     src = Path(src).resolve()
-    mods = modules(src)
+    mods = _modules_cached(str(src))
     h = hashlib.sha256()
     h.update(b"__script__\0" + Path(script).read_bytes() + b"\0")  # the script itself
     for name in sorted(script_modules(script, src, extra, exclude)):
