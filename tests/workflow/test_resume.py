@@ -1,7 +1,9 @@
 """Kill and resume: a study killed in the middle of its twin stage completes on rerun.
 
 The twin stage of the small study has 4 shards run one at a time (--cores 1), so the run can
-be stopped when some but not all shards are done. After the rerun (the default profile:
+be stopped when some but not all shards are done. The study is a copy of the uninterrupted
+reference run (``conftest.reference_runs``) with its twin stage deleted: every step before the
+shards is done, and the run starts with them. After the rerun (the default profile:
 --rerun-incomplete, 2 cores) every shard finished before the kill must be untouched (same
 inode and modification time: reused, not recomputed), and results.parquet must equal an
 uninterrupted run's, table and bytes.
@@ -15,6 +17,7 @@ uninterrupted run's, table and bytes.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -22,10 +25,10 @@ from base64 import urlsafe_b64encode
 from pathlib import Path
 
 import pytest
+from helpers.workflow import copy_study
 from slurm.runs import (
     ROOT,
     assert_same_results,
-    new_study,
     results_dir,
     results_files,
     run,
@@ -117,10 +120,22 @@ def _interrupt(
     return done
 
 
+def _twin_stage_deleted(work: Path, config: Path) -> None:
+    """The twin stage's outputs (shards, runs, results) deleted: every step before it stays
+    done, so the next run starts with the shards."""
+    for twin in results_files(work, config):
+        folder = results_dir(work, config) / "twins" / twin
+        shutil.rmtree(folder / "shards")
+        for name in ("runs.parquet", "run_summary.json", "results.parquet"):
+            (folder / name).unlink()
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT], ids=["SIGKILL", "SIGINT"])
 def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path, reference_runs):
-    work = tmp_path / "study"
-    config = new_study(work)
+    ref_work, ref_config = reference_runs(1)
+    work = copy_study(ref_work, tmp_path / "study")
+    config = work / ref_config.name
+    _twin_stage_deleted(work, config)
     before = _interrupt(work, config, sig, tmp_path / "interrupted.log")
     traj = results_dir(work, config) / "trajectories.parquet"
     traj_stat = traj.stat().st_mtime_ns
@@ -143,5 +158,4 @@ def test_killed_study_resumes_reusing_finished_shards(sig, tmp_path, reference_r
     n_shard_jobs = (resumed.stdout + resumed.stderr).count("rule twin_shard:")
     assert n_shard_jobs == N_SHARDS - len(before)
 
-    ref_work, ref_config = reference_runs(1)
     assert_same_results(results_files(work, config), results_files(ref_work, ref_config))

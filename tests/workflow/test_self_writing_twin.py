@@ -15,7 +15,7 @@ import pytest
 import yaml
 from fakes import FAULTY_TWIN
 from helpers.paths import ROOT
-from helpers.workflow import run_snakemake
+from helpers.workflow import copy_study, run_snakemake
 
 
 def test_a_write_through_a_symlinked_code_folder_is_named_and_excludable(tmp_path,
@@ -43,7 +43,6 @@ def test_a_write_through_a_symlinked_code_folder_is_named_and_excludable(tmp_pat
         assert command_fingerprint(fixed) == before
 
 
-@pytest.mark.slow
 def _config(tmp_path, excludes: dict[str, list[str]]):
     cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
     cfg["twin_runs"].update(runs_per_sequence=20, n_shards=2)
@@ -63,35 +62,41 @@ def _config(tmp_path, excludes: dict[str, list[str]]):
     return config
 
 
-def test_a_twin_writing_its_own_files_is_named_then_finished_studies_stay_finished(tmp_path):
-    (tmp_path / "twin" / "state").mkdir(parents=True)
-    shutil.copy(FAULTY_TWIN[1], tmp_path / "twin" / "faulty_twin.py")
+@pytest.mark.slow
+def test_a_twin_writing_its_own_files_is_named_then_finished_studies_stay_finished(
+        tmp_path, test_study):
+    """Two command twins writing into their fingerprint, on a copy of the shared
+    config/test.yaml study (``test_study``: every step before the twin plan is the
+    same), so only the twin stage runs."""
+    work = copy_study(test_study[0], tmp_path / "study")
+    (work / "twin" / "state").mkdir(parents=True)
+    shutil.copy(FAULTY_TWIN[1], work / "twin" / "faulty_twin.py")
     targets = [f"results/test/twins/{t}/runs.parquet" for t in ("inside", "named")]
-    config = _config(tmp_path, {})
-    done = run_snakemake(tmp_path, config, "--cores", "2", *targets)
+    config = _config(work, {})
+    done = run_snakemake(work, config, "--cores", "2", *targets)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
-    assert (tmp_path / "named.log").is_file()
+    assert (work / "named.log").is_file()
 
     # the next start: one line naming the file and the key, no job planned
-    again = run_snakemake(tmp_path, config, "--cores", "2", "-n", *targets)
+    again = run_snakemake(work, config, "--cores", "2", "-n", *targets)
     out = again.stdout + again.stderr
     assert again.returncode != 0
     line = next(ln for ln in out.splitlines() if ln.startswith("invalid config:"))
     assert line.startswith("invalid config: twins.inside: the twin wrote "
                            "'twin/state/requests.log' while it ran"), line
     assert "twins.inside.code_exclude" in line
-    config = _config(tmp_path, {"inside": ["twin/state/"]})
-    again = run_snakemake(tmp_path, config, "--cores", "2", "-n", *targets)
+    config = _config(work, {"inside": ["twin/state/"]})
+    again = run_snakemake(work, config, "--cores", "2", "-n", *targets)
     line = next(ln for ln in (again.stdout + again.stderr).splitlines()
                 if ln.startswith("invalid config:"))
     assert line.startswith("invalid config: twins.named: the twin wrote 'named.log'"), line
 
     # both excluded: the twins rerun once (their spec changed), then nothing to do
-    config = _config(tmp_path, {"inside": ["twin/state/"], "named": ["named.log"]})
-    done = run_snakemake(tmp_path, config, "--cores", "2", *targets)
+    config = _config(work, {"inside": ["twin/state/"], "named": ["named.log"]})
+    done = run_snakemake(work, config, "--cores", "2", *targets)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
     for _ in range(2):
-        again = run_snakemake(tmp_path, config, "--cores", "2", "-n", *targets)
+        again = run_snakemake(work, config, "--cores", "2", "-n", *targets)
         out = again.stdout + again.stderr
         assert again.returncode == 0, out[-3000:]
         assert "Nothing to be done" in out, out[-3000:]

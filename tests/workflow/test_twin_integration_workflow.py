@@ -67,14 +67,21 @@ def test_served_builtin_twin_gives_the_in_process_results(tmp_path, test_study):
     assert (res[0]["p_value"] < 0.5).any()  # informative tests, not all p = 1
 
 
-def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_path):
+def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_path,
+                                                                           test_study):
+    """A slow command twin's study killed (kill -9 of Snakemake and its job) when some of
+    its shards are done: after --unlock, --rerun-incomplete reruns only the unfinished
+    shards. The study continues a copy of the shared config/test.yaml study
+    (``test_study``: every step before the twin plan is the same), so the twin stage is
+    what runs."""
     cmd = [*FAULTY_TWIN, "--mode", "slow", "--delay", "0.02"]
     spec = {"kind": "command", "command": cmd, "workers": 1, "timeout_s": 30,
             "env": {"PYTHONPATH": str(ROOT / "src")}}
-    config = _config(tmp_path, {"slow": spec}, runs_per_sequence=80, n_shards=3)
-    shards = tmp_path / "results" / "test" / "twins" / "slow" / "shards"
+    work = copy_study(test_study[0], tmp_path / "study")
+    config = _config(work, {"slow": spec}, runs_per_sequence=80, n_shards=3)
+    shards = work / "results" / "test" / "twins" / "slow" / "shards"
     target = "results/test/twins/slow/runs.parquet"  # the twin stage: what is checked
-    proc = subprocess.Popen(_cmd(tmp_path, config, "--cores", "1", target),
+    proc = subprocess.Popen(_cmd(work, config, "--cores", "1", target),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True,
                             env={**os.environ, "MPLBACKEND": "Agg"})
@@ -95,16 +102,16 @@ def test_kill_9_during_twin_stage_then_resume_recomputes_no_finished_shard(tmp_p
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert len(done) < 3, "every shard finished before the kill: make the twin slower"
-    assert _run(tmp_path, config, "--unlock").returncode == 0
-    dry = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete", "--dry-run", target)
+    assert _run(work, config, "--unlock").returncode == 0
+    dry = _run(work, config, "--cores", "1", "--rerun-incomplete", "--dry-run", target)
     for name in done:
         # finished shards are not scheduled (they only appear as inputs of twin_runs)
         assert f"output: results/test/twins/slow/shards/{name}" not in dry.stdout + dry.stderr
     assert "rule twin_shard" in dry.stdout + dry.stderr  # the unfinished ones are
-    run = _run(tmp_path, config, "--cores", "1", "--rerun-incomplete", target)
+    run = _run(work, config, "--cores", "1", "--rerun-incomplete", target)
     assert run.returncode == 0, run.stderr[-3000:]
     for name, mtime in done.items():
         assert (shards / name).stat().st_mtime_ns == mtime
     assert len(list(shards.glob("*.parquet"))) == 3
-    runs = pd.read_parquet(tmp_path / "results" / "test" / "twins" / "slow" / "runs.parquet")
+    runs = pd.read_parquet(work / "results" / "test" / "twins" / "slow" / "runs.parquet")
     assert (runs["status"] == "ok").all()
