@@ -25,10 +25,11 @@ setup: $(STAMP)
 reproduce: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES)
 
-## Set up and run the whole test suite, on two workers (pytest-xdist; a test file runs whole
-## on one worker).
+## Set up and run the whole test suite, on three workers (pytest-xdist; a test file runs whole
+## on one worker): on two cores, the third keeps them busy while a test waits for a twin,
+## a cluster or a timeout.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 3 --dist loadfile
 
 ## The inner loop: the unit tests only (no Snakemake study, no engine), on two workers.
 test-fast: $(STAMP)

@@ -98,7 +98,7 @@ def reference_runs(tmp_path_factory):
 
 
 # ---- running on several workers (pytest-xdist, `make test`) -------------------------------
-# `make test` runs `pytest -n 2 --dist loadfile`: a test file runs whole on one worker, so its
+# `make test` runs `pytest -n 3 --dist loadfile`: a test file runs whole on one worker, so its
 # module fixtures are built once and its tests may share them in order; what several files
 # share is built once per run by `built_once`.
 
