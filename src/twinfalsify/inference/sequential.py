@@ -99,22 +99,55 @@ COMBINES = ("union",)  # how the observational and twin capitals combine (doc)
 PRODUCT_REMOVED = ("combine: product was removed: it can exceed its level when the twin's X_0 "
                    "come from the observational sample (measured 0.0020 at a = 0.001); "
                    "use combine: union")
+# entering rate among runs with X_0 in B_0, shrunk: rho = (E + RATE_A) / (S + RATE_A + RATE_B)
+# (Krichevsky-Trofimov; any constants >= 0 keep the bets predictable, hence valid)
+RATE_A, RATE_B = 0.5, 0.5
 
 
 def cs_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
             index: np.ndarray | None = None) -> np.ndarray:
-    """WSR's predictable plug-in bets for a confidence sequence, per group.
+    """WSR's predictable plug-in bets for a confidence sequence of unknown horizon, per group.
 
-    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) (WSR 2024, eq. for
-    the "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later);
+    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) (WSR 2024, the
+    "predictable plug-in" CS; the c/m, c/(1-m) truncation is applied per m later);
     ``i`` is the 1-based position among the group's values (``index`` overrides it;
-    positions only, never the group size). delta0: one per group.
+    positions only, never the group size). delta0: one per group. Not the adaptive test's
+    twin bets (:func:`horizon_bets`); kept as the unknown-horizon reference.
     """
     gid, t = flat_layout(offsets)
     _, prev = running_moments(x, offsets, (gid, t))
     i = t if index is None else index
     k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[gid] / (i * np.log1p(i))
     return np.sqrt(k / prev)
+
+
+def horizon(entered: np.ndarray, seen_b0: np.ndarray, left_b0: np.ndarray) -> np.ndarray:
+    """Predictable estimate n_i of the entering runs at the budget, at a run with X_0 in B_0.
+
+    n_i = max(i, E + rho R), i = E + 1, rho = (E + RATE_A) / (S + RATE_A + RATE_B): E
+    successful entering runs before it, S runs with X_0 in B_0 before it, R runs with X_0 in
+    B_0 from it to the budget (itself included; known from the plan).
+    """
+    e = np.asarray(entered, float)
+    rho = (e + RATE_A) / (np.asarray(seen_b0, float) + RATE_A + RATE_B)
+    return np.maximum(e + 1.0, e + rho * np.asarray(left_b0, float))
+
+
+def horizon_bet(sig2_prev: np.ndarray, entered: np.ndarray, seen_b0: np.ndarray,
+                left_b0: np.ndarray, log_term: np.ndarray) -> np.ndarray:
+    """lambda = sqrt(2 log(1/delta0) / (sigma2_{i-1} n_i)); ``log_term`` = log(1/delta0)."""
+    return np.sqrt(2.0 * log_term / (sig2_prev * horizon(entered, seen_b0, left_b0)))
+
+
+def horizon_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, seen_b0: np.ndarray,
+                 left_b0: np.ndarray) -> np.ndarray:
+    """The twin side's bets, per group: the fixed-n plug-in bet (WSR 2024, eq. 26-27) at the
+    predictable horizon n_i of :func:`horizon` (module doc; the c/m, c/(1-m) truncation is
+    applied per m later). ``seen_b0``, ``left_b0``: per value, S and R of its run."""
+    gid, t = flat_layout(offsets)
+    _, prev = running_moments(x, offsets, (gid, t))
+    return horizon_bet(prev, t - 1, seen_b0, left_b0,
+                       np.log(1.0 / np.asarray(delta0, float))[gid])
 
 
 @dataclass(frozen=True)
@@ -267,21 +300,27 @@ class SequentialState:
         x = (np.clip(v.values[sel], self.y_lo[g], self.y_up[g]) - self.y_lo[g]) / (
             self.y_up[g] - self.y_lo[g])
         m = runs.failed.shape[1]
+        # S (runs with X_0 in B_0 before run j) and R (from j to the budget): the plan's
+        cb = self._b0_counts(runs, groups)
+        j = runs.run[sel]
+        log_term = np.log(1.0 / self.delta0[groups])
         fg = fj = np.zeros(0, np.int64)  # failed runs: group position, run (sorted so)
         if self.failed_runs == "conservative":
             fg, fj = np.nonzero(runs.failed[groups] & (np.arange(m) < upto[groups][:, None]))
+        seen, left = cb[gi, j], cb[gi, -1] - cb[gi, j]
         if len(fg) == 0:
-            succ = OrderedSide(x, cs_bets(x, offs, self.delta0[groups], self.c), offs)
+            succ = OrderedSide(x, horizon_bets(x, offs, self.delta0[groups], seen, left), offs)
             return TwinSides(succ, succ, succ), sizes
-        # one extra slot per group: the bet a next successful run would get (it reads only
-        # the values before it), for failed runs after the group's last successful one
+        lam = horizon_bets(x, offs, self.delta0[groups], seen, left)
+        # a failed run gets the bet of its own place: sigma2 and E from the successful runs
+        # before it (one extra slot per group holds sigma2 after the group's last one)
         offs_ext = offs + np.arange(len(groups) + 1)
-        lam_ext = cs_bets(np.insert(x, offs[1:], 0.5), offs_ext, self.delta0[groups], self.c)
-        lam = np.delete(lam_ext, offs_ext[1:] - 1)
-        key_s = gi * (m + 1) + runs.run[sel]  # ascending: groups sorted, runs sorted within
+        _, sig_ext = running_moments(np.insert(x, offs[1:], 0.5), offs_ext)
+        key_s = gi * (m + 1) + j  # ascending: groups sorted, runs sorted within
         key_f = fg * (m + 1) + fj
         k = np.searchsorted(key_s, key_f)  # successful runs before each failed one (global)
-        lam_f = lam_ext[k + fg]
+        lam_f = horizon_bet(sig_ext[k + fg], k - offs[fg], cb[fg, fj], cb[fg, -1] - cb[fg, fj],
+                            log_term[fg])
         order = np.argsort(np.concatenate([key_s, key_f]), kind="stable")
         offs_all = np.concatenate(
             [[0], np.cumsum(sizes + np.bincount(fg, minlength=len(groups)))]).astype(np.int64)
@@ -289,6 +328,14 @@ class SequentialState:
         worst = (OrderedSide(np.concatenate([x, np.full(len(fg), w)])[order], lam_all, offs_all)
                  for w in (1.0, 0.0))
         return TwinSides(OrderedSide(x, lam, offs), *worst), sizes
+
+    def _b0_counts(self, runs: TwinRuns, groups: np.ndarray) -> np.ndarray:
+        """(len(groups), budget + 1): runs with X_0 in B_0 among runs < j, for j = 0..budget
+        (known from the plan before any simulation)."""
+        b0 = runs.in_b0[groups][:, :self.budget]
+        out = np.zeros((len(groups), b0.shape[1] + 1), np.int32)
+        np.cumsum(b0, axis=1, out=out[:, 1:])
+        return out
 
     def update(self, runs: TwinRuns, b: int) -> None:
         """Decide with the first ``revealed(b)`` runs of every still-active hypothesis."""
@@ -299,12 +346,14 @@ class SequentialState:
         upto = np.full(len(self.hyps), j)
         tw, nhat = self._twin_prefix(runs, upto, act)
         und = self.side[act] == UNDECIDED
-        r = runs.in_b0[act][:, j:self.budget].sum(axis=1)  # runs that can still enter
-        lam = future_bet_bound(tw.succ, nhat, self.delta0[act], self.c)
-        rej, fut, lvl, cur_m, cur_lev = self._decide_union(tw, act, r, lam)
+        cb = self._b0_counts(runs, act)
+        j_b = min(j, cb.shape[1] - 1)
+        r = cb[:, -1] - cb[:, j_b]  # runs that can still enter
+        lam = future_bet_bound(tw.succ, nhat, cb[:, j_b], r, self.delta0[act])
+        rej, fut, lvl, cur_m, cur_lev = self._decide_union(tw, act, lam)
         new = np.where(rej, REJECTED, np.where(fut, FUTILE, UNDECIDED)).astype(np.int8)
         if self.curtail > 0:
-            cur = self._curtailed(runs, tw, nhat, act, j, lam, cur_m, cur_lev)
+            cur = self._curtailed(runs, tw, nhat, act, j, lam.largest(), cur_m, cur_lev)
             new = np.where((new == UNDECIDED) & cur, CURTAILED, new).astype(np.int8)
         newly = und & (new == FUTILE)
         self.side[act] = np.where(und, new, self.side[act])
@@ -313,7 +362,7 @@ class SequentialState:
         done = ~(self.side[act] == UNDECIDED).any(axis=1) | (j >= self.budget)
         self.stop_batch[act[done]] = b
 
-    def _decide_union(self, tw: TwinSides, act: np.ndarray, r: np.ndarray, lam: np.ndarray
+    def _decide_union(self, tw: TwinSides, act: np.ndarray, lam: FutureBets
                       ) -> tuple[np.ndarray, ...]:
         """Union rule: (rejected, futile, futility level, curtailment point m, its log-level),
         each (len(act), 2) for (H_lo, H_up); rules (a)-(c) of the module doc."""
@@ -323,7 +372,7 @@ class SequentialState:
         rej_up = log_capital(tw.up, self.u_star[act], +1, True, self.c) >= lev_star
         # (b) futility at alpha: best reachable capital up to the budget
         lev = np.full(len(act), np.log(2.0 / self.alpha))
-        best_lo, best_up = self._best(tw, act, r, lam, self.l_fut[act], self.u_fut[act])
+        best_lo, best_up = self._best(tw, lam, self.l_fut[act], self.u_fut[act])
         fut_lo, fut_up = best_lo < lev, best_up < lev
         lvl_lo = np.where(fut_lo, self.alpha, 0.0)
         lvl_up = np.where(fut_up, self.alpha, 0.0)
@@ -334,7 +383,7 @@ class SequentialState:
             self._refresh_holm_bounds(act)
             q_lo, q_up = self.q_hol[act, 0], self.q_hol[act, 1]
             a_lo, a_up = self.alpha / 2.0 ** q_lo, self.alpha / 2.0 ** q_up
-            h_lo, h_up = self._best(tw, act, r, lam, self.l_hol[act], self.u_hol[act])
+            h_lo, h_up = self._best(tw, lam, self.l_hol[act], self.u_hol[act])
             hol_lo = (q_lo > 0) & ~fut_lo & (h_lo < np.log(2.0 / a_lo))
             hol_up = (q_up > 0) & ~fut_up & (h_up < np.log(2.0 / a_up))
             fut_lo, fut_up = fut_lo | hol_lo, fut_up | hol_up
@@ -346,19 +395,19 @@ class SequentialState:
         return (np.stack([rej_lo, rej_up], axis=1), np.stack([fut_lo, fut_up], axis=1),
                 np.stack([lvl_lo, lvl_up], axis=1), cur_m, cur_lev)
 
-    def _best(self, tw: TwinSides, act: np.ndarray, r: np.ndarray, lam: np.ndarray,
-              lf: np.ndarray, uf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up)."""
+    def _best(self, tw: TwinSides, lam: FutureBets, lf: np.ndarray, uf: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """log of the best twin capital reachable up to the budget at L (H_lo) and U (H_up):
+        every remaining run with X_0 in B_0 at the value most favourable to rejection with the
+        largest bet it can get (module doc (b))."""
         with np.errstate(divide="ignore"):  # L = 1 or U = 0: the cap is infinite
             cap_lo, cap_up = self.c / (1 - lf), self.c / uf
         best_lo = np.maximum(
             log_capital(tw.lo, lf, -1, True, self.c),
-            log_capital(tw.lo, lf, -1, False, self.c)
-            + r * np.log1p(np.minimum(lam, cap_lo) * lf))
+            log_capital(tw.lo, lf, -1, False, self.c) + lam.log_growth(cap_lo, lf))
         best_up = np.maximum(
             log_capital(tw.up, uf, +1, True, self.c),
-            log_capital(tw.up, uf, +1, False, self.c)
-            + r * np.log1p(np.minimum(lam, cap_up) * (1 - uf)))
+            log_capital(tw.up, uf, +1, False, self.c) + lam.log_growth(cap_up, 1 - uf))
         return best_lo, best_up
 
     def _curtailed(self, runs: TwinRuns, tw: TwinSides, nhat: np.ndarray, act: np.ndarray,
@@ -463,22 +512,60 @@ class SequentialState:
         return p_lo, p_up, nhat
 
 
-def future_bet_bound(side: OrderedSide, nhat: np.ndarray, delta0: np.ndarray,
-                     c: float = C_TRUNC) -> np.ndarray:
-    """Upper bound on every future CS bet of each group, whatever the future values.
+@dataclass(frozen=True)
+class FutureBets:
+    """Bounds lambdabar_s on the bet at the s-th remaining run with X_0 in B_0 (s = 1..r),
+    group after group (flat, ``offsets``), whatever the future values and entering pattern."""
 
-    lambda_i = sqrt(2 log(1/delta0) / (sigma2_{i-1} i log(1 + i))) and
-    sigma2_{i-1} i = 1/4 + sum_{j<i} (x_j - mu_j)^2 >= 1/4 + S_tau for i > tau (the sum only
-    grows), log(1 + i) >= log(2 + tau): so lambda_i <= sqrt(2 log(1/delta0) /
-    ((1/4 + S_tau) log(2 + tau))) for every i > tau (tau = nhat so far). The bet actually
-    placed at m is min(lambda_i, c/m) (K+) or min(lambda_i, c/(1-m)) (K-).
+    lam: np.ndarray  # (sum r,)
+    offsets: np.ndarray  # (G + 1,)
+
+    def log_growth(self, cap: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        """(G,) sum_s log(1 + min(lambdabar_s, cap) gain): the log of the largest product of
+        the remaining factors when each moves the capital by at most ``gain`` per unit bet."""
+        gid, _ = flat_layout(self.offsets)
+        g = len(self.offsets) - 1
+        term = np.log1p(np.minimum(self.lam, cap[gid]) * gain[gid])
+        return np.bincount(gid, term, g) if len(term) else np.zeros(g)
+
+    def largest(self) -> np.ndarray:
+        """(G,) max_s lambdabar_s (0 where no run can still enter)."""
+        g = len(self.offsets) - 1
+        out = np.zeros(g)
+        nz = np.diff(self.offsets) > 0
+        if nz.any():
+            out[nz] = np.maximum.reduceat(self.lam, self.offsets[:-1][nz])
+        return out
+
+
+def future_bet_bound(side: OrderedSide, nhat: np.ndarray, seen_b0: np.ndarray, r: np.ndarray,
+                     delta0: np.ndarray) -> FutureBets:
+    """Upper bound on the bet at each remaining run with X_0 in B_0, whatever happens.
+
+    At the s-th remaining run with X_0 in B_0 (s = 1..r) the bet is
+    lambda^2 = 2 log(1/delta0) i / ((1/4 + V_{i-1}) n_i) with i = E + 1, V_{i-1} the sum of
+    the squared deviations of the successful entering runs so far, n_i = :func:`horizon`.
+    What is fixed: S = seen_b0 + s - 1 and R = r - s + 1 (the plan). What is not: E in
+    [nhat, nhat + s - 1] and V_{i-1} >= V_tau (the sum only grows). i / n_i =
+    min(1, (E + 1) / (E + rho(E) R)) is a Moebius function of E with its pole at E < 0, so
+    monotone on E >= 0: its maximum is at an end of the interval. Hence
+    lambdabar_s^2 = 2 log(1/delta0) max(i/n_i at E = nhat, at E = nhat + s - 1) /
+    (1/4 + V_tau). The bet placed at m is min(lambda, c/m) (K+) or min(lambda, c/(1-m)) (K-).
     """
     gid, t = flat_layout(side.offsets)
     mu = (0.5 + segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
     sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
-    s_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
-    k = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / ((0.25 + s_tau) * np.log(2.0 + nhat))
-    return np.sqrt(k)
+    v_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
+    r = np.asarray(r, np.int64)
+    offs = np.concatenate([[0], np.cumsum(r)]).astype(np.int64)
+    g, s = flat_layout(offs)
+    seen, left = np.asarray(seen_b0)[g] + s - 1, r[g] - s + 1
+    e_lo = np.asarray(nhat, float)[g]
+    e_hi = e_lo + s - 1
+    ratio = np.maximum((e_lo + 1) / horizon(e_lo, seen, left),
+                       (e_hi + 1) / horizon(e_hi, seen, left))
+    k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[g] * ratio / (0.25 + v_tau[g])
+    return FutureBets(np.sqrt(k), offs)
 
 
 def _group_means(side: OrderedSide) -> np.ndarray:
