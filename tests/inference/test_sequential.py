@@ -194,6 +194,24 @@ def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary(curtail, c
         assert (p_lo <= a).mean() <= a + 3 * np.sqrt(a * (1 - a) / h), a
 
 
+def test_p_values_stay_valid_for_both_sides_when_few_runs_can_enter():
+    """Null boundary for H_lo and H_up at once (twin mean = Q_lo = Q_up), a quarter of the X_0
+    in B_0: the horizon n_i is then estimated from few runs early on, and P(p <= a) <= a per
+    side at the data-dependent stops."""
+    rng = np.random.default_rng(13)
+    h = 2000
+    hyps, obs, runs = _world(h, 300, 400, q_lo=0.4, twin_mean=0.4, propensity=1.0, rng=rng,
+                             b0_frac=0.25)
+    st = SequentialState(hyps, obs, None, budget=400, batch_size=25, n_family=np.full(h, 20))
+    run_to_stop(st, runs)
+    p_lo, p_up, nhat = st.p_values(runs)
+    assert 50 < nhat.mean() < 90  # about 400 x 0.25 x 0.8 entering runs at the budget
+    for p in (p_lo, p_up):
+        for a in (0.05, 0.2, 0.5):
+            assert (p <= a).mean() <= a + 3 * np.sqrt(a * (1 - a) / h), a
+    assert (p_lo <= 0.5).mean() > 0.1  # the test has teeth: p-values are not all 1
+
+
 def _state(hyps, obs, runs, budget, batch, **kw) -> SequentialState:
     st = SequentialState(hyps, obs, None, budget=budget, batch_size=batch, **kw)
     run_to_stop(st, runs)
