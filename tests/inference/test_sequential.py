@@ -106,7 +106,7 @@ def test_future_bet_bound_dominates_every_continuation():
                 seen, r = int(in_b0[:j].sum()), int(in_b0[j:].sum())
                 fb = future_bet_bound(side, np.array([len(succ)]), np.array([seen]),
                                       np.array([r]), np.array([d0]))
-                bound = fb.lam
+                bound = fb.bets()
                 assert len(bound) == r
                 futures = [(np.zeros(budget), np.ones(budget, bool)),
                            (np.ones(budget), np.ones(budget, bool)),

@@ -103,6 +103,7 @@ from twinfalsify.inference.capital import (
     C_TRUNC,
     OrderedSide,
     capital_bound,
+    chunk_ranges,
     crossing,
     flat_layout,
     log_capital,
@@ -540,27 +541,48 @@ class SequentialState:
 
 @dataclass(frozen=True)
 class FutureBets:
-    """Bounds lambdabar_s on the bet at the s-th remaining run with X_0 in B_0 (s = 1..r),
-    group after group (flat, ``offsets``), whatever the future values and entering pattern."""
+    """Bounds lambdabar_s on the bet at the s-th remaining run with X_0 in B_0 (s = 1..r) of
+    each group, whatever the future values and entering pattern (:func:`future_bet_bound`).
+    Formed chunk by chunk of groups when used: sum r can reach H times the budget."""
 
-    lam: np.ndarray  # (sum r,)
-    offsets: np.ndarray  # (G + 1,)
+    scale: np.ndarray  # (G,) 2 log(1/delta0) / (1/4 + V_tau)
+    nhat: np.ndarray  # (G,) successful entering runs so far
+    seen_b0: np.ndarray  # (G,) runs with X_0 in B_0 revealed
+    r: np.ndarray  # (G,) runs with X_0 in B_0 still to come
+
+    def _chunk(self, h0: int, h1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(group within the chunk, lambdabar_s) of groups h0..h1-1, flat."""
+        r = self.r[h0:h1]
+        g, s = flat_layout(np.concatenate([[0], np.cumsum(r)]).astype(np.int64))
+        seen, left = self.seen_b0[h0:h1][g] + s - 1, r[g] - s + 1
+        e_lo = self.nhat[h0:h1][g].astype(float)
+        e_hi = e_lo + s - 1
+        # i / n_i is monotone in E: its largest value over [nhat, nhat + s - 1] is at an end
+        ratio = np.maximum((e_lo + 1) / horizon(e_lo, seen, left),
+                           (e_hi + 1) / horizon(e_hi, seen, left))
+        return g, np.sqrt(self.scale[h0:h1][g] * ratio)
+
+    def bets(self) -> np.ndarray:
+        """(sum r,) every lambdabar_s, group after group."""
+        return np.concatenate([np.zeros(0)] + [self._chunk(h0, h1)[1]
+                                               for h0, h1 in chunk_ranges(self.r)])
 
     def log_growth(self, cap: np.ndarray, gain: np.ndarray) -> np.ndarray:
         """(G,) sum_s log(1 + min(lambdabar_s, cap) gain): the log of the largest product of
         the remaining factors when each moves the capital by at most ``gain`` per unit bet."""
-        gid, _ = flat_layout(self.offsets)
-        g = len(self.offsets) - 1
-        term = np.log1p(np.minimum(self.lam, cap[gid]) * gain[gid])
-        return np.bincount(gid, term, g) if len(term) else np.zeros(g)
+        out = np.zeros(len(self.r))
+        for h0, h1 in chunk_ranges(self.r):
+            g, lam = self._chunk(h0, h1)
+            term = np.log1p(np.minimum(lam, cap[h0:h1][g]) * gain[h0:h1][g])
+            out[h0:h1] = np.bincount(g, term, h1 - h0)
+        return out
 
     def largest(self) -> np.ndarray:
         """(G,) max_s lambdabar_s (0 where no run can still enter)."""
-        g = len(self.offsets) - 1
-        out = np.zeros(g)
-        nz = np.diff(self.offsets) > 0
-        if nz.any():
-            out[nz] = np.maximum.reduceat(self.lam, self.offsets[:-1][nz])
+        out = np.zeros(len(self.r))
+        for h0, h1 in chunk_ranges(self.r):
+            g, lam = self._chunk(h0, h1)
+            np.maximum.at(out[h0:h1], g, lam)
         return out
 
 
@@ -582,16 +604,9 @@ def future_bet_bound(side: OrderedSide, nhat: np.ndarray, seen_b0: np.ndarray, r
     mu = (0.5 + segment_cumsum(side.x, side.offsets, gid)) / (t + 1)
     sq = np.concatenate([[0.0], np.cumsum((side.x - mu) ** 2)])
     v_tau = sq[side.offsets[1:]] - sq[side.offsets[:-1]]
-    r = np.asarray(r, np.int64)
-    offs = np.concatenate([[0], np.cumsum(r)]).astype(np.int64)
-    g, s = flat_layout(offs)
-    seen, left = np.asarray(seen_b0)[g] + s - 1, r[g] - s + 1
-    e_lo = np.asarray(nhat, float)[g]
-    e_hi = e_lo + s - 1
-    ratio = np.maximum((e_lo + 1) / horizon(e_lo, seen, left),
-                       (e_hi + 1) / horizon(e_hi, seen, left))
-    k = 2.0 * np.log(1.0 / np.asarray(delta0, float))[g] * ratio / (0.25 + v_tau[g])
-    return FutureBets(np.sqrt(k), offs)
+    scale = 2.0 * np.log(1.0 / np.asarray(delta0, float)) / (0.25 + v_tau)
+    return FutureBets(scale, np.asarray(nhat, np.int64), np.asarray(seen_b0, np.int64),
+                      np.asarray(r, np.int64))
 
 
 def _group_means(side: OrderedSide) -> np.ndarray:
