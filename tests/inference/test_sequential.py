@@ -17,59 +17,128 @@ from twinfalsify.inference.sequential import (
     REJECTED,
     UNDECIDED,
     SequentialState,
-    cs_bets,
     future_bet_bound,
+    horizon_bets,
     node_runs,
     run_to_stop,
 )
 
 
-def _side(x: np.ndarray, delta0: float) -> OrderedSide:
-    g, n = x.shape
-    offs = np.arange(g + 1, dtype=np.int64) * n
-    return OrderedSide(x.ravel(), cs_bets(x.ravel(), offs, np.full(g, delta0)), offs)
+def ref_bet(succ: list[float], seen_b0: int, left_b0: int, delta0: float) -> float:
+    """The twin bet at a run with X_0 in B_0, from scratch: sigma2 from the successful entering
+    values before it (WSR's running plug-in), n = max(i, E + rho R) with
+    rho = (E + 1/2) / (S + 1) (module doc)."""
+    total = dev = 0.0
+    for t, x in enumerate(succ, 1):
+        total += x
+        dev += (x - (0.5 + total) / (t + 1)) ** 2
+    e = len(succ)
+    sig2 = (0.25 + dev) / (e + 1)
+    n = max(e + 1.0, e + (e + 0.5) / (seen_b0 + 1.0) * left_b0)
+    return float(np.sqrt(2.0 * np.log(1.0 / delta0) / (sig2 * n)))
 
 
-def test_cs_bets_are_predictable_and_ignore_the_sample_size():
-    """Bets of a prefix equal the first bets of the whole sequence (no dependence on n)."""
+def ref_bets(x_runs: np.ndarray, enter: np.ndarray, in_b0: np.ndarray, delta0: float
+             ) -> np.ndarray:
+    """Plain loop over runs in X_0 order: the bet placed at every entering run."""
+    out, succ = [], []
+    for j in range(len(in_b0)):
+        if enter[j]:
+            out.append(ref_bet(succ, int(in_b0[:j].sum()), int(in_b0[j:].sum()), delta0))
+            succ.append(float(x_runs[j]))
+    return np.array(out)
+
+
+def twin_side(x: np.ndarray, enter: np.ndarray, in_b0: np.ndarray, delta0: float
+              ) -> OrderedSide:
+    """(G, n) runs in X_0 order -> the twin side of G groups (entering runs only)."""
+    g = x.shape[0]
+    cb = np.concatenate([np.zeros((g, 1), np.int64), np.cumsum(in_b0, axis=1)], axis=1)
+    gi, j = np.nonzero(enter)
+    offs = np.concatenate([[0], np.cumsum(enter.sum(axis=1))]).astype(np.int64)
+    seen, left = cb[gi, j], cb[gi, -1] - cb[gi, j]
+    return OrderedSide(x[gi, j], horizon_bets(x[gi, j], offs, np.full(g, delta0), seen, left),
+                       offs)
+
+
+def test_horizon_bets_match_a_plain_loop_and_are_predictable():
+    """The vectorised bets equal a run-by-run loop; a bet reads only the values before it and
+    the plan (X_0 in B_0), never a later value nor the final number of entering runs."""
     rng = np.random.default_rng(0)
-    x = rng.beta(2, 5, 300)
-    full = cs_bets(x, np.array([0, 300]), np.array([0.01]))
-    part = cs_bets(x[:120], np.array([0, 120]), np.array([0.01]))
-    np.testing.assert_array_equal(full[:120], part)
-    # changing x_i changes bets after i only
-    y = x.copy()
-    y[50] = 1 - y[50]
-    other = cs_bets(y, np.array([0, 300]), np.array([0.01]))
-    np.testing.assert_array_equal(other[:51], full[:51])
-    assert not np.array_equal(other[51:], full[51:])
+    g, n = 5, 300
+    in_b0 = rng.random((g, n)) < [[0.2], [0.5], [0.8], [1.0], [0.05]]
+    enter = in_b0 & (rng.random((g, n)) < [[0.9], [0.3], [0.7], [1.0], [0.5]])
+    x = rng.beta(2, 5, (g, n))
+    side = twin_side(x, enter, in_b0, 0.01)
+    for k in range(g):
+        np.testing.assert_allclose(side.lam[side.offsets[k]:side.offsets[k + 1]],
+                                   ref_bets(x[k], enter[k], in_b0[k], 0.01), rtol=1e-12)
+    # a later value, or whether later runs enter, changes no earlier bet
+    y, late = x.copy(), enter.copy()
+    y[:, 150:] = 1 - y[:, 150:]
+    late[:, 150:] = in_b0[:, 150:]
+    for other, ent in ((twin_side(y, enter, in_b0, 0.01), enter),
+                       (twin_side(x, late, in_b0, 0.01), late)):
+        for k in range(g):
+            e = int(enter[k, :151].sum())  # entering runs up to run 150 included
+            a, b = side.offsets[k], other.offsets[k]
+            # (to rounding: the flat cumulative sums restart per group by subtraction)
+            np.testing.assert_allclose(other.lam[b:b + e], side.lam[a:a + e], rtol=1e-12)
+            np.testing.assert_allclose(other.lam[b:other.offsets[k + 1]],
+                                       ref_bets(y[k] if ent is enter else x[k], ent[k],
+                                                in_b0[k], 0.01), rtol=1e-12)
+        assert not np.allclose(other.lam[-20:], side.lam[-20:])  # later bets do change
 
 
 def test_future_bet_bound_dominates_every_continuation():
-    """Brute force: random, all-0, all-1 and alternating futures never bet above the bound."""
+    """Brute force over continuations: whatever the future values and entering pattern, the
+    bet at the s-th remaining run with X_0 in B_0 never exceeds the bound lambdabar_s."""
     rng = np.random.default_rng(6)
-    for tau in (0, 1, 30, 200):
-        x = rng.beta(2, 5, tau)
-        side = OrderedSide(x, cs_bets(x, np.array([0, tau]), np.array([1e-4])), np.array([0, tau]))
-        bound = future_bet_bound(side, np.array([tau]), np.array([1e-4]))[0]
-        futures = [rng.random(300), np.zeros(300), np.ones(300), np.tile([0.0, 1.0], 150),
-                   np.full(300, x.mean() if tau else 0.5)]
-        for fut in futures:
-            y = np.concatenate([x, fut])
-            lam = cs_bets(y, np.array([0, len(y)]), np.array([1e-4]))[tau:]
-            assert lam.max() <= bound + 1e-12, (tau, lam.max(), bound)
+    budget, d0 = 120, 1e-4
+    for frac in (1.0, 0.4):
+        in_b0 = rng.random(budget) < frac
+        for j in (0, 1, 10, 60, 110):  # runs revealed
+            for rate in (1.0, 0.6, 0.1):
+                enter_past = in_b0[:j] & (rng.random(j) < rate)
+                x_past = rng.beta(2, 5, j)
+                succ = x_past[enter_past]
+                side = OrderedSide(succ, None, np.array([0, len(succ)]))
+                seen, r = int(in_b0[:j].sum()), int(in_b0[j:].sum())
+                fb = future_bet_bound(side, np.array([len(succ)]), np.array([seen]),
+                                      np.array([r]), np.array([d0]))
+                bound = fb.bets()
+                assert len(bound) == r
+                futures = [(np.zeros(budget), np.ones(budget, bool)),
+                           (np.ones(budget), np.ones(budget, bool)),
+                           (np.tile([0.0, 1.0], budget // 2), np.ones(budget, bool)),
+                           (rng.random(budget), rng.random(budget) < 0.5),
+                           (np.zeros(budget), np.arange(budget) >= budget - 5),  # late entries
+                           (np.zeros(budget), np.arange(budget) % 7 == 0)]
+                futures += [(rng.random(budget) ** 3, rng.random(budget) < p)
+                            for p in (0.05, 0.3, 0.9)]
+                for fut_x, fut_enter in futures:
+                    xs = np.concatenate([x_past, fut_x[j:]])
+                    ent = np.concatenate([enter_past, in_b0[j:] & fut_enter[j:]])
+                    # bet at every remaining run with X_0 in B_0 (entering or not)
+                    s_pos = np.flatnonzero(in_b0[j:]) + j
+                    lam = [ref_bet(list(xs[:q][ent[:q]]), int(in_b0[:q].sum()),
+                                   int(in_b0[q:].sum()), d0) for q in s_pos]
+                    assert np.all(np.array(lam) <= bound * (1 + 1e-12)), (frac, j, rate)
 
 
 @pytest.mark.parametrize("dist", ["bernoulli", "beta"])
 def test_confidence_sequence_is_time_uniform(dist):
-    """P(exists t <= n: K_t(true mean) >= 1/delta) <= delta, for K+ and K- (Ville)."""
+    """P(exists t <= n: K_t(true mean) >= 1/delta) <= delta, for K+ and K- (Ville), with the
+    horizon bets on runs that enter at random among those with X_0 in B_0."""
     rng = np.random.default_rng(1)
     g, n, delta = 4000, 400, 0.1
     if dist == "bernoulli":
         x, mu = (rng.random((g, n)) < 0.3).astype(float), 0.3
     else:
         x, mu = rng.beta(2, 2, (g, n)), 0.5
-    side = _side(x, delta)  # bets tuned at the level tested: the least favourable case
+    in_b0 = rng.random((g, n)) < 0.6
+    enter = in_b0 & (rng.random((g, n)) < 0.7)
+    side = twin_side(x, enter, in_b0, delta)  # bets tuned at the level tested: least favourable
     m = np.full(g, mu)
     se = np.sqrt(delta * (1 - delta) / g)
     for sign in (+1, -1):
@@ -123,6 +192,24 @@ def test_p_values_at_the_stopping_time_are_valid_at_the_null_boundary(curtail, c
     p_lo, _, _ = st.p_values(runs)
     for a in (0.05, 0.2, 0.5):
         assert (p_lo <= a).mean() <= a + 3 * np.sqrt(a * (1 - a) / h), a
+
+
+def test_p_values_stay_valid_for_both_sides_when_few_runs_can_enter():
+    """Null boundary for H_lo and H_up at once (twin mean = Q_lo = Q_up), a quarter of the X_0
+    in B_0: the horizon n_i is then estimated from few runs early on, and P(p <= a) <= a per
+    side at the data-dependent stops."""
+    rng = np.random.default_rng(13)
+    h = 2000
+    hyps, obs, runs = _world(h, 300, 400, q_lo=0.4, twin_mean=0.4, propensity=1.0, rng=rng,
+                             b0_frac=0.25)
+    st = SequentialState(hyps, obs, None, budget=400, batch_size=25, n_family=np.full(h, 20))
+    run_to_stop(st, runs)
+    p_lo, p_up, nhat = st.p_values(runs)
+    assert 50 < nhat.mean() < 90  # about 400 x 0.25 x 0.8 entering runs at the budget
+    for p in (p_lo, p_up):
+        for a in (0.05, 0.2, 0.5):
+            assert (p <= a).mean() <= a + 3 * np.sqrt(a * (1 - a) / h), a
+    assert (p_lo <= 0.5).mean() > 0.1  # the test has teeth: p-values are not all 1
 
 
 def _state(hyps, obs, runs, budget, batch, **kw) -> SequentialState:
@@ -242,11 +329,15 @@ def _failing_world(h: int, m: int, q_lo: float, rng: np.random.Generator, fail_a
 
 def test_conservative_capital_bets_the_next_runs_bet_on_each_failed_run_at_the_worst_value():
     """Brute force, run by run: a failed run multiplies K- by 1 - min(lambda, c/(1-m)) (1 - m)
-    (K+ by 1 - min(lambda, c/m) m), lambda being the bet the next successful run would get
-    (read from the successful runs before it); a successful run as in the drop capital."""
+    (K+ by 1 - min(lambda, c/m) m), lambda being the bet of its own place (read from the
+    successful runs before it and the plan); a successful run as in the drop capital."""
     rng = np.random.default_rng(11)
     hyps, obs, runs = _failing_world(6, 120, 0.4, rng, fail_above=0.5, fail_prob=0.5)
     runs.failed[0] = False  # a hypothesis without failures: its capital is the drop one
+    # some runs that neither enter nor fail have X_0 outside B_0 (the plan's S and R vary)
+    entered = np.zeros_like(runs.in_b0)
+    entered[np.repeat(np.arange(6), runs.values.sizes), runs.run] = True
+    runs.in_b0[~entered & ~runs.failed & (rng.random(runs.in_b0.shape) < 0.7)] = False
     st = SequentialState(hyps, obs, None, budget=120, batch_size=10, n_family=np.full(6, 20))
     groups, upto = np.arange(6), np.full(6, 90)  # failures after the last revealed run too
     sides, nhat = st._twin_prefix(runs, upto, groups)
@@ -262,8 +353,8 @@ def test_conservative_capital_bets_the_next_runs_bet_on_each_failed_run_at_the_w
             pos = runs.run[runs.values.offsets[g]:runs.values.offsets[g + 1]]
             vals = runs.values.group(g)
             for j in range(90):
-                lam = cs_bets(np.array([*succ, 0.5]), np.array([0, len(succ) + 1]),
-                              np.array([d0]))[-1]
+                b0 = runs.in_b0[g]
+                lam = ref_bet(succ, int(b0[:j].sum()), int(b0[j:120].sum()), d0)
                 b_lo, b_up = min(lam, c / (1 - m)), min(lam, c / m)
                 if runs.failed[g, j]:
                     lo += np.log1p(-b_lo * (1 - m))
