@@ -456,8 +456,8 @@ def test_rescaled_moments_equal_clip_rescale_order_and_running_moments():
         y_up = y_lo + rng.uniform(0.5, 10, g)
         staged = np.round(rng.normal(0, 8, offs[-1]), 1)  # coarse: ties and clipped values
         real = rng.random(offs[-1]) < 0.7
-        perm = np.concatenate([o + rng.permutation(k) for o, k in zip(offs[:-1], sizes)]
-                              ).astype(np.int64)
+        perm = np.concatenate([o + rng.permutation(k)
+                               for o, k in zip(offs[:-1], sizes, strict=True)]).astype(np.int64)
         gid = np.repeat(np.arange(g), sizes)
         width = y_up - y_lo
         for fill in (0.0, 1.0):
