@@ -117,3 +117,20 @@ def serve_in_process(messages: list[dict], *, batch: bool, twin=None) -> list[di
     serve_forever(hello, simulate, io.StringIO("".join(map(encode, messages))), stdout,
                   simulate_batch=batch_handler(twin) if batch else None)
     return [decode(line) for line in stdout.getvalue().splitlines()]
+
+
+def synthetic_context(folder, n_stays: int, d0_stays: int):
+    """A twin context in ``folder`` (twin_context.json, d0.parquet): the synthetic world of
+    ``n_stays`` stays (seed 3) and its first ``d0_stays`` stays as D0 (what the fitted twin
+    fits on). Returns the context file's path."""
+    import json
+
+    from twinfalsify.sources.synthetic import generate
+
+    synthetic = {"n_stays": n_stays}
+    generate(synthetic, 3).query(f"stay_id <= {200000 + d0_stays}").to_parquet(
+        folder / "d0.parquet")
+    (folder / "twin_context.json").write_text(json.dumps(
+        {"source": {"kind": "synthetic", "synthetic": synthetic},
+         "d0": str(folder / "d0.parquet")}))
+    return folder / "twin_context.json"

@@ -16,7 +16,13 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from helpers.twins import UNITS, CountingTwin, serve_in_process, simulate_request
+from helpers.twins import (
+    UNITS,
+    CountingTwin,
+    serve_in_process,
+    simulate_request,
+    synthetic_context,
+)
 
 from twinfalsify.runs.protocol import (
     ARRAYS,
@@ -144,13 +150,7 @@ def test_the_capability_is_checked_and_advertised_with_batches():
 
 @pytest.fixture(scope="module")
 def context(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("arraysctx")
-    synthetic = {"n_stays": 300}
-    generate(synthetic, 3).query("stay_id <= 200150").to_parquet(folder / "d0.parquet")
-    (folder / "twin_context.json").write_text(json.dumps(
-        {"source": {"kind": "synthetic", "synthetic": synthetic},
-         "d0": str(folder / "d0.parquet")}))
-    return folder / "twin_context.json"
+    return synthetic_context(tmp_path_factory.mktemp("arraysctx"), 300, 150)
 
 
 def test_served_builtin_runs_equal_with_and_without_arrays(context, tmp_path):

@@ -28,6 +28,7 @@ from helpers.twins import (
     serve_in_process,
     simulate_request,
     stamps,
+    synthetic_context,
 )
 
 from twinfalsify.runs import worker as worker_mod
@@ -358,13 +359,7 @@ def test_protocol_twin_batch_size_option(tmp_path):
 
 @pytest.fixture(scope="module")
 def context(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("batchctx")
-    synthetic = {"n_stays": 400}
-    generate(synthetic, 3).query("stay_id <= 200200").to_parquet(folder / "d0.parquet")
-    (folder / "twin_context.json").write_text(json.dumps(
-        {"source": {"kind": "synthetic", "synthetic": synthetic},
-         "d0": str(folder / "d0.parquet")}))
-    return folder / "twin_context.json"
+    return synthetic_context(tmp_path_factory.mktemp("batchctx"), 400, 200)
 
 
 @pytest.mark.parametrize("spec", [
