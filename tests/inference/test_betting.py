@@ -464,7 +464,7 @@ def test_rescaled_moments_equal_clip_rescale_order_and_running_moments():
             xs = np.where(real, (np.clip(staged, y_lo[gid], y_up[gid]) - y_lo[gid]) / width[gid],
                           fill)[perm]
             x, sig2 = np.empty(offs[-1]), np.empty(offs[-1])
-            rescaled_moments(staged, real, perm, offs, y_lo, y_up, width, fill, x, sig2)
+            rescaled_moments(staged, real, perm, offs, y_lo, y_up, fill, x, sig2)
             assert x.tobytes() == xs.tobytes()
             assert sig2.tobytes() == running_moments(xs, offs)[1].tobytes()
 

@@ -70,6 +70,19 @@ def test_arrays_answer_equals_the_plain_answer_run_by_run():
     assert [c.status for c in checked] == ["ok", "ok", "error", "ok", "error", "ok"]
 
 
+def test_a_batch_of_failed_runs_only_has_no_features_and_checks():
+    """Every run failed before its first hour: no features, no values; each run keeps its
+    status and message, as in the plain answer."""
+    bad = [{**simulate_request(k, 2, k), "x0": {"HR": 1.0}} for k in range(3)]
+    (answer,) = serve_in_process([{"op": "simulate_batch", "requests": bad, "answer": ARRAYS}],
+                                 batch=True, twin=CountingTwin())
+    assert answer["features"] == [] and answer["hours"] == [0, 0, 0]
+    checked = check_array_results(answer, [r["id"] for r in bad], [2, 2, 2], FEATURES,
+                                  FEATURES, FEATURES)
+    assert all(isinstance(c, CheckedResult) and c.status == "error" and c.values.shape ==
+               (0, len(FEATURES)) and "lacks feature(s) age" in c.message for c in checked)
+
+
 def _corrupt(key: str, i: int, value) -> dict:
     answer = _answers(answer=ARRAYS)
     answer[key] = list(answer[key])

@@ -343,11 +343,11 @@ def ordered_sides(
         raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
     use_pos = order == "data" and samples.follow_pos is not None
     hseed = None if order == "data" else seed
-    h, width, d0 = _checked(samples, delta0)
+    h, _, d0 = _checked(samples, delta0)
     copy = np.zeros(h, np.int64)
     if orders > 1:
         samples, copy = _tile(samples, int(orders))
-        d0, h, width = np.tile(d0, int(orders)), len(samples), samples.width
+        d0, h = np.tile(d0, int(orders)), len(samples)
     keys = samples.hyp_keys
     n = samples.n.astype(np.int64)
     nf = samples.n_follow
@@ -361,10 +361,10 @@ def ordered_sides(
             return OrderedSide(x, None, offsets, star=star_bets(x, offsets, d0, sig2=bet))
         return OrderedSide(x, bet, offsets)
 
-    def bets(x: np.ndarray, o: np.ndarray, h0: int, h1: int, var: np.ndarray) -> None:
+    def bets(x: np.ndarray, o: np.ndarray, h0: int, h1: int, var: np.ndarray, lay=None) -> None:
         """``var`` (a chunk's variances) becomes the plug-in bets, unless STaR bets read it."""
         if not star:
-            var[:] = plugin_bets(x, o, d0[h0:h1], c, sig2=var)
+            var[:] = plugin_bets(x, o, d0[h0:h1], c, lay, sig2=var)
 
     def obs() -> tuple[OrderedSide, OrderedSide]:
         x_lo, x_up = np.empty(offs[-1]), np.empty(offs[-1])
@@ -380,18 +380,19 @@ def ordered_sides(
                 if is_f.sum() != len(at):
                     raise ValueError("betting: two followers share a position (follow_pos)")
             else:  # the followers first, in their listed order
-                at = o[:-1][fg] + (np.arange(len(fg)) - np.repeat(
-                    follow.offsets[h0:h1] - follow.offsets[h0], nf[h0:h1]))
+                at = o[:-1][fg] + flat_layout(follow.offsets[h0: h1 + 1]
+                                              - follow.offsets[h0])[1] - 1
                 is_f[at] = True
             staged = np.zeros(o[-1])
             staged[at] = follow.values[fsl]
             perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 1)
             sl = slice(offs[h0], offs[h1])
-            bounds = (y_lo[h0:h1], samples.y_up[h0:h1], width[h0:h1])
+            bounds = (y_lo[h0:h1], samples.y_up[h0:h1])
             rescaled_moments(staged, is_f, perm, o, *bounds, 0.0, x_lo[sl], v_lo[sl])
             rescaled_moments(staged, is_f, perm, o, *bounds, 1.0, x_up[sl], v_up[sl])
-            bets(x_lo[sl], o, h0, h1, v_lo[sl])
-            bets(x_up[sl], o, h0, h1, v_up[sl])
+            lay = None if star else flat_layout(o)  # shared by Y_lo and Y_up
+            bets(x_lo[sl], o, h0, h1, v_lo[sl], lay)
+            bets(x_up[sl], o, h0, h1, v_up[sl], lay)
         return side(x_lo, offs, v_lo), side(x_up, offs, v_up)
 
     def twin_side() -> OrderedSide:
@@ -402,7 +403,7 @@ def ordered_sides(
             sl = slice(twin.offsets[h0], twin.offsets[h1])
             perm = _order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)
             rescaled_moments(twin.values[sl], np.ones(o[-1], dtype=bool), perm, o, y_lo[h0:h1],
-                             samples.y_up[h0:h1], width[h0:h1], 0.0, xt[sl], vt[sl])
+                             samples.y_up[h0:h1], 0.0, xt[sl], vt[sl])
             bets(xt[sl], o, h0, h1, vt[sl])
         return side(xt, twin.offsets, vt)
 

@@ -105,12 +105,12 @@ def running_moments(
 @numba.njit(cache=True, nogil=True)
 def rescaled_moments(staged: np.ndarray, real: np.ndarray, perm: np.ndarray,
                      offsets: np.ndarray, y_lo: np.ndarray, y_up: np.ndarray,
-                     width: np.ndarray, fill: float, x: np.ndarray,
-                     sig2: np.ndarray) -> None:  # pragma: no cover - compiled
+                     fill: float, x: np.ndarray, sig2: np.ndarray) -> None:  # pragma: no cover
     """One pass of what rescaling, ordering and :func:`running_moments` do in several.
 
     Element i of group g (flat, ``offsets``) is ``staged[perm[i]]`` rescaled to
-    (clip(y, y_lo[g], y_up[g]) - y_lo[g]) / width[g] when ``real[perm[i]]``, else ``fill``;
+    (clip(y, y_lo[g], y_up[g]) - y_lo[g]) / (y_up[g] - y_lo[g]) when ``real[perm[i]]``, else
+    ``fill``;
     written to ``x``, and its predictable variance sigma2_{i-1} to ``sig2``. The sums run
     over the whole flat array and restart by subtraction, as :func:`segment_cumsum` does,
     so every value equals the numpy form's bit for bit.
@@ -118,7 +118,8 @@ def rescaled_moments(staged: np.ndarray, real: np.ndarray, perm: np.ndarray,
     cs, cs2, prev = 0.0, 0.0, 0.25
     for g in range(len(offsets) - 1):
         a, b = offsets[g], offsets[g + 1]
-        lo, up, w = y_lo[g], y_up[g], width[g]
+        lo, up = y_lo[g], y_up[g]
+        w = up - lo
         base, base2 = cs, cs2
         for i in range(a, b):
             j = perm[i]

@@ -312,9 +312,10 @@ class SequentialState:
     def revealed(self, b: int) -> int:
         return min(b * self.batch_size, self.budget)
 
-    def _twin_prefix(self, runs: TwinRuns, upto: np.ndarray, groups: np.ndarray
-                     ) -> tuple[TwinSides, np.ndarray]:
-        """:class:`TwinSides` of ``groups`` (sorted) with runs < upto[group]; and nhat."""
+    def _twin_prefix(self, runs: TwinRuns, upto: np.ndarray, groups: np.ndarray,
+                     cb: np.ndarray | None = None) -> tuple[TwinSides, np.ndarray]:
+        """:class:`TwinSides` of ``groups`` (sorted) with runs < upto[group]; and nhat.
+        ``cb``: their :meth:`_b0_counts`, if the caller has them."""
         v = runs.values
         gid = v.group_ids()
         sel = np.isin(gid, groups) & (runs.run < upto[gid])
@@ -326,7 +327,7 @@ class SequentialState:
             self.y_up[g] - self.y_lo[g])
         m = runs.failed.shape[1]
         # S (runs with X_0 in B_0 before run j) and R (from j to the budget): the plan's
-        cb = self._b0_counts(runs, groups)
+        cb = self._b0_counts(runs, groups) if cb is None else cb
         j = runs.run[sel]
         log_term = np.log(1.0 / self.delta0[groups])
         fg = fj = np.zeros(0, np.int64)  # failed runs: group position, run (sorted so)
@@ -369,9 +370,9 @@ class SequentialState:
             return
         j = self.revealed(b)
         upto = np.full(len(self.hyps), j)
-        tw, nhat = self._twin_prefix(runs, upto, act)
-        und = self.side[act] == UNDECIDED
         cb = self._b0_counts(runs, act)
+        tw, nhat = self._twin_prefix(runs, upto, act, cb)
+        und = self.side[act] == UNDECIDED
         j_b = min(j, cb.shape[1] - 1)
         r = cb[:, -1] - cb[:, j_b]  # runs that can still enter
         lam = future_bet_bound(tw.succ, nhat, cb[:, j_b], r, self.delta0[act])

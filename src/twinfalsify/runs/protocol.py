@@ -546,48 +546,50 @@ def check_array_results(
     if len(raw) != 8 * total:
         raise ProtocolError(f"field 'values' holds {len(raw) // 8} numbers; the hours and "
                             f"features ask for {total}")
-    flat = np.frombuffer(raw, dtype="<f8").astype(float)
+    rows = np.frombuffer(raw, dtype="<f8").astype(float).reshape(sum(counts), len(feats))
     missing = [name for name in required if name not in feats]
     index = {name: j for j, name in enumerate(columns)}
-    src = np.array([j for j, f in enumerate(feats) if f in index], dtype=int)
-    dst = np.array([index[feats[j]] for j in src], dtype=int)
+    src = [j for j, f in enumerate(feats) if f in index]
+    mapped = np.full((len(rows), len(columns)), np.nan)  # the batch's hours in columns order
+    mapped[:, [index[feats[j]] for j in src]] = rows[:, src]
+    finite = np.isfinite(rows).all(axis=1)
     out: list[CheckedResult | ProtocolError] = []
     start = 0
     for i in range(n):
-        c = counts[i]
-        block = flat[start: start + c * len(feats)].reshape(c, len(feats))
-        start += c * len(feats)
+        s = slice(start, start + counts[i])
+        start = s.stop
         try:
             out.append(_array_result(
-                lists["ids"][i], lists["status"][i], lists["message"][i], block,
-                lists["clamped"][i], lists["truncated"][i], request_ids[i], int(hours[i]),
-                missing, feats, src, dst, columns,
+                lists["ids"][i], lists["status"][i], lists["message"][i], mapped[s],
+                None if finite[s].all() else rows[s], lists["clamped"][i],
+                lists["truncated"][i], request_ids[i], int(hours[i]), missing, feats, columns,
                 None if continue_while is None else continue_while[i]))
         except ProtocolError as exc:
             out.append(exc)
     return out
 
 
-def _array_result(rid: Any, status: Any, message: Any, block: np.ndarray, clamped: Any,
-                  truncated: Any, request_id: str, hours: int, missing: list[str],
-                  feats: list[str], src: np.ndarray, dst: np.ndarray,
-                  columns: Sequence[str], continue_while: list | None) -> CheckedResult:
-    """One run of an "arrays" answer under check_result's rules."""
+def _array_result(rid: Any, status: Any, message: Any, values: np.ndarray,
+                  broken: np.ndarray | None, clamped: Any, truncated: Any, request_id: str,
+                  hours: int, missing: list[str], feats: list[str], columns: Sequence[str],
+                  continue_while: list | None) -> CheckedResult:
+    """One run of an "arrays" answer under check_result's rules: ``values`` its hours in
+    ``columns`` order; ``broken`` its hours as sent when one holds a non-finite number."""
     if rid != request_id:
         raise ProtocolError(f"answer id {rid!r} does not match request id {request_id!r}")
     if status not in RESULT_STATUSES:
         raise ProtocolError(f"status {status!r} is not one of {', '.join(RESULT_STATUSES)}")
     if not isinstance(message, str):
         raise ProtocolError(f"field 'message' must be a string, got {type(message).__name__}")
-    s = len(block)
+    s = len(values)
     if s > hours:
         raise ProtocolError(f"{s} hours returned, more than the {hours} asked for")
     if s and missing:
         raise ProtocolError(f"hour 1 lacks feature(s) {', '.join(missing)}")
-    if not np.isfinite(block).all():
-        h, j = np.argwhere(~np.isfinite(block))[0]
+    if broken is not None:
+        h, j = np.argwhere(~np.isfinite(broken))[0]
         raise ProtocolError(f"hour {h + 1} feature {feats[j]} is not a finite number: "
-                            f"{block[h, j]!r}")
+                            f"{broken[h, j]!r}")
     cut = status == "ok" and s < hours
     if cut and (truncated is not True or continue_while is None):
         raise ProtocolError(
@@ -595,8 +597,6 @@ def _array_result(rid: Any, status: Any, message: Any, block: np.ndarray, clampe
             "(a twin that stops early must report init_failed, irreversible or error, or "
             "'truncated': true when the request's continue_while allows it)"
         )
-    values = np.full((s, len(columns)), np.nan)
-    values[:, dst] = block[:, src]
     if cut:
         need = hours_needed(continue_while, values, hours, columns)
         if s < need:
