@@ -4,6 +4,8 @@ child processes), and the order and slow marks of the whole suite. Plain helpers
 
 from __future__ import annotations
 
+import compileall
+import gc
 import os
 import shutil
 import sys
@@ -54,6 +56,21 @@ def no_leftover_processes():
             break
         time.sleep(0.05)
     assert not left, f"child processes left behind (pid, state): {left}"
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    # the library's bytecode, written once before any test: the suite starts hundreds of
+    # processes that import it (Snakemake jobs, twins, command lines), and where Python is told
+    # not to write bytecode itself (PYTHONDONTWRITEBYTECODE) each would compile it again
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        compileall.compile_dir(SRC / "twinfalsify", quiet=1)
+
+
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    # a test that ran a rule script's body in this process (io.run_rule) froze its heap, as a
+    # job's process does at its end: thawed, this worker's later garbage is collected again
+    if gc.get_freeze_count():
+        gc.unfreeze()
 
 
 @pytest.fixture(scope="session")

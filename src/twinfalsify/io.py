@@ -1,8 +1,10 @@
-"""Small I/O helpers for the rule scripts: atomic writes, logs, one-line errors."""
+"""Small I/O helpers for the rule scripts: atomic writes, logs, one-line errors, and the end
+of a job's process."""
 
 from __future__ import annotations
 
 import errno
+import gc
 import glob
 import json
 import logging
@@ -140,11 +142,26 @@ def read_parquet(path: str | Path, what: str = "table") -> pd.DataFrame:
         ) from None
 
 
+def freeze_heap() -> None:
+    """Leave every object alive now out of the garbage collector's later passes
+    (:func:`gc.freeze`), the one at interpreter exit included.
+
+    For objects that live as long as their process: a rule script's once its work is done,
+    the parsed workflow, a served twin once built. Python's last collection at exit would
+    otherwise walk the whole heap of pandas, matplotlib and numba, a fixed cost of every
+    job's process (``benchmarks/bench_process_exit.py``). Objects stay reference-counted:
+    only cycles among them are no longer collected, and files and logs are closed as before
+    (by ``with`` blocks, and by ``logging``'s exit hook).
+    """
+    gc.freeze()
+
+
 def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
     """Run a rule script body with logging to the rule's log and one-line data errors.
 
     A ContractError (bad input, bad config) ends the job with its message as
-    the last line of the log and of stderr, not with a traceback.
+    the last line of the log and of stderr, not with a traceback. Whatever the end, the
+    heap is frozen (:func:`freeze_heap`): the process exits without walking it.
     """
     log_path = snakemake.log[0] if len(snakemake.log) else None
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
@@ -167,6 +184,8 @@ def run_rule(snakemake: Any, main: Callable[[Any], None]) -> None:
             log.error("ERROR: unexpected failure in rule %s:\n%s", snakemake.rule,
                       traceback.format_exc())
         sys.exit(1)
+    finally:
+        freeze_heap()
 
 
 def job_errors(*snakemake_logs: str | Path) -> list[str]:

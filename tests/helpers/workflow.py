@@ -63,7 +63,7 @@ def copy_repo(repo: Path) -> Path:
     for part in ("Snakefile", "profiles", "workflow", "scripts", "src", "config", "envs"):
         src, dst = ROOT / part, repo / part
         if src.is_dir():
-            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+            shutil.copytree(src, dst)  # bytecode and numba's caches too: still valid
         else:
             shutil.copy(src, dst)
     return repo

@@ -42,7 +42,7 @@ else:
 import twinfalsify  # noqa: E402
 
 SRC = Path(twinfalsify.__file__).resolve().parents[1]
-from twinfalsify.io import load_yaml_strict, unwritable  # noqa: E402
+from twinfalsify.io import freeze_heap, load_yaml_strict, unwritable  # noqa: E402
 from twinfalsify.provenance import (
     PROTOCOL_CLIENT_MODULES,
     code_fingerprint,

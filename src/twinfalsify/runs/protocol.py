@@ -41,6 +41,7 @@ docs/reference/twin-protocol.md for the full description.
 from __future__ import annotations
 
 import base64
+import gc
 import json
 import math
 import sys
@@ -209,8 +210,11 @@ def serve_forever(
     request, in order (a vectorised twin computes a batch at once); without it
     a "simulate_batch" message is answered by calling ``simulate`` per request,
     so every twin served here accepts batches (whether the caller sends any
-    depends on the ``batch`` capability the hello advertises).
+    depends on the ``batch`` capability the hello advertises). The process's heap is frozen
+    first (:func:`gc.freeze`, as :func:`twinfalsify.io.freeze_heap` does without importing
+    pandas): the twin lives as long as the process.
     """
+    gc.freeze()
     stdin = stdin or sys.stdin
     stdout = stdout or sys.stdout
     for line in stdin:
