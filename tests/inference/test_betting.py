@@ -445,7 +445,8 @@ def test_rescaled_moments_equal_clip_rescale_order_and_running_moments():
     """The one-pass kernel gives what clipping, rescaling, ordering by a permutation and
     ``running_moments`` give in numpy, bit for bit: empty groups, fill values, values
     outside [y_lo, y_up], ties and negative ranges."""
-    from twinfalsify.inference.capital import rescaled_moments, running_moments
+    from twinfalsify.inference.capital import running_moments
+    from twinfalsify.inference.kernels import rescaled_moments
 
     rng = np.random.default_rng(4)
     for _ in range(10):
@@ -472,12 +473,39 @@ def test_rescaled_moments_equal_clip_rescale_order_and_running_moments():
 def test_stable_argsort_keeps_tied_keys_in_index_order():
     """Ties in the 53-bit keys (astronomically rare for hashes, so forced here) keep the
     index order, as the stable sort of the reference does."""
-    from twinfalsify.inference.betting import _stable_argsort
+    from twinfalsify.inference.kernels import stable_argsort
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 2, 7, 500):
         bits = rng.integers(0, 5, n).astype(np.uint64)  # many ties
-        np.testing.assert_array_equal(_stable_argsort(bits), np.argsort(bits, kind="stable"))
+        np.testing.assert_array_equal(stable_argsort(bits), np.argsort(bits, kind="stable"))
+
+
+def test_numba_is_imported_when_a_test_first_bets_not_before():
+    """The kernels' module is imported lazily: the modules every figure and summary job
+    imports leave numba out; the first betting test brings it in (a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    from helpers.paths import SRC
+
+    code = (
+        "import sys\n"
+        "import twinfalsify.summary, twinfalsify.figures, twinfalsify.twin_tests\n"
+        "import twinfalsify.inference.betting as b, twinfalsify.inference.sequential\n"
+        "from twinfalsify.inference.samples import HypothesisSamples, Ragged\n"
+        "print('numba' in sys.modules)\n"
+        "import numpy as np\n"
+        "r = Ragged.from_groups([np.array([0.2, 0.5, 0.9])])\n"
+        "s = HypothesisSamples(y_lo=np.zeros(1), y_up=np.ones(1), n=np.array([3]),\n"
+        "                      follow=r, twin=r)\n"
+        "b.betting_test(s, tune_alpha=0.05)\n"
+        "print('numba' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={"PYTHONPATH": str(SRC), "MPLBACKEND": "Agg"}, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "True"]
 
 
 def test_data_order_places_followers_at_their_positions():

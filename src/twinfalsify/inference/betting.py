@@ -161,7 +161,6 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide re-exported
@@ -174,7 +173,6 @@ from twinfalsify.inference.capital import (  # noqa: F401 - C_TRUNC, OrderedSide
     flat_layout,
     log_capital,
     plugin_bets,
-    rescaled_moments,
     running_moments,
     segment_cumsum,
     star_bets,
@@ -265,46 +263,9 @@ def _hashed_order(sizes: np.ndarray, keys: np.ndarray, copy: np.ndarray, seed: i
         hk = _mix64(base ^ np.asarray(keys, np.int64).astype(np.uint64))
         hk = _mix64(hk ^ (np.asarray(copy, np.int64).astype(np.uint64) << np.uint64(40)))
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    return _order_within_groups(hk, offsets)
+    from twinfalsify.inference import kernels  # numba: imported when first needed
 
-
-@numba.njit(cache=True, nogil=True)
-def _mix64_one(z: np.uint64) -> np.uint64:  # pragma: no cover - compiled
-    """:func:`_mix64` of one value (uint64 arithmetic wraps, as numpy's does)."""
-    z = z + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-@numba.njit(cache=True, nogil=True)
-def _stable_argsort(bits: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """argsort of uint64 keys, equal keys in ascending index (what a stable sort gives)."""
-    idx = np.argsort(bits)
-    n, i = len(bits), 0
-    while i < n:
-        j = i + 1
-        while j < n and bits[idx[j]] == bits[idx[i]]:
-            j += 1
-        if j - i > 1:
-            idx[i:j] = np.sort(idx[i:j])
-        i = j
-    return idx
-
-
-@numba.njit(cache=True, nogil=True)
-def _order_within_groups(hk: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """Flat permutation: group g's positions sorted by the top 53 bits of
-    splitmix64(hk[g] ^ position), ties by position. One group at a time (cache-sized),
-    the same permutation as ``np.lexsort((U, gid))`` over the whole flat array."""
-    out = np.empty(offsets[-1], np.int64)
-    for g in range(len(offsets) - 1):
-        a, n = offsets[g], offsets[g + 1] - offsets[g]
-        bits = np.empty(n, np.uint64)
-        for p in range(n):
-            bits[p] = _mix64_one(hk[g] ^ np.uint64(p)) >> np.uint64(11)
-        out[a: a + n] = _stable_argsort(bits) + a
-    return out
+    return kernels.order_within_groups(hk, offsets)
 
 
 def _tile(samples: HypothesisSamples, k: int) -> tuple[HypothesisSamples, np.ndarray]:
@@ -339,6 +300,8 @@ def ordered_sides(
     chunk by chunk of hypotheses (cache-sized). ``orders`` K > 1: K independently ordered
     copies.
     """
+    from twinfalsify.inference import kernels  # numba: imported when first needed
+
     if order not in ORDER_KINDS:
         raise ValueError(f"betting: order must be one of {', '.join(ORDER_KINDS)}, got {order!r}")
     use_pos = order == "data" and samples.follow_pos is not None
@@ -388,8 +351,8 @@ def ordered_sides(
             perm = _order_keys(n[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 1)
             sl = slice(offs[h0], offs[h1])
             bounds = (y_lo[h0:h1], samples.y_up[h0:h1])
-            rescaled_moments(staged, is_f, perm, o, *bounds, 0.0, x_lo[sl], v_lo[sl])
-            rescaled_moments(staged, is_f, perm, o, *bounds, 1.0, x_up[sl], v_up[sl])
+            kernels.rescaled_moments(staged, is_f, perm, o, *bounds, 0.0, x_lo[sl], v_lo[sl])
+            kernels.rescaled_moments(staged, is_f, perm, o, *bounds, 1.0, x_up[sl], v_up[sl])
             lay = None if star else flat_layout(o)  # shared by Y_lo and Y_up
             bets(x_lo[sl], o, h0, h1, v_lo[sl], lay)
             bets(x_up[sl], o, h0, h1, v_up[sl], lay)
@@ -402,8 +365,8 @@ def ordered_sides(
             o = twin.offsets[h0: h1 + 1] - twin.offsets[h0]
             sl = slice(twin.offsets[h0], twin.offsets[h1])
             perm = _order_keys(sizes[h0:h1], keys[h0:h1], copy[h0:h1], hseed, 2)
-            rescaled_moments(twin.values[sl], np.ones(o[-1], dtype=bool), perm, o, y_lo[h0:h1],
-                             samples.y_up[h0:h1], 0.0, xt[sl], vt[sl])
+            kernels.rescaled_moments(twin.values[sl], np.ones(o[-1], dtype=bool), perm, o,
+                                     y_lo[h0:h1], samples.y_up[h0:h1], 0.0, xt[sl], vt[sl])
             bets(xt[sl], o, h0, h1, vt[sl])
         return side(xt, twin.offsets, vt)
 

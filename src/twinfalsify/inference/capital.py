@@ -8,10 +8,8 @@ docstring, the test that uses these kernels; the sequential mode
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 C_TRUNC = 0.9  # WSR suggest 1/2 or 3/4; 0.9 measured tighter at Holm-size levels (docs)
@@ -102,43 +100,6 @@ def running_moments(
     return mu_prev, sig2_prev
 
 
-@numba.njit(cache=True, nogil=True)
-def rescaled_moments(staged: np.ndarray, real: np.ndarray, perm: np.ndarray,
-                     offsets: np.ndarray, y_lo: np.ndarray, y_up: np.ndarray,
-                     fill: float, x: np.ndarray, sig2: np.ndarray) -> None:  # pragma: no cover
-    """One pass of what rescaling, ordering and :func:`running_moments` do in several.
-
-    Element i of group g (flat, ``offsets``) is ``staged[perm[i]]`` rescaled to
-    (clip(y, y_lo[g], y_up[g]) - y_lo[g]) / (y_up[g] - y_lo[g]) when ``real[perm[i]]``, else
-    ``fill``;
-    written to ``x``, and its predictable variance sigma2_{i-1} to ``sig2``. The sums run
-    over the whole flat array and restart by subtraction, as :func:`segment_cumsum` does,
-    so every value equals the numpy form's bit for bit.
-    """
-    cs, cs2, prev = 0.0, 0.0, 0.25
-    for g in range(len(offsets) - 1):
-        a, b = offsets[g], offsets[g + 1]
-        lo, up = y_lo[g], y_up[g]
-        w = up - lo
-        base, base2 = cs, cs2
-        for i in range(a, b):
-            j = perm[i]
-            if real[j]:
-                v = staged[j]
-                v = v if v > lo else lo  # numpy's clip: min(max(v, lo), up)
-                v = v if v < up else up
-                xi = (v - lo) / w
-            else:
-                xi = fill
-            x[i] = xi
-            t = i - a + 1
-            cs += xi
-            mu = (0.5 + (cs - base)) / (t + 1)
-            cs2 += (xi - mu) * (xi - mu)
-            sig2[i] = 0.25 if i == a else prev
-            prev = (0.25 + (cs2 - base2)) / (t + 1)
-
-
 def plugin_bets(
     x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray, c: float = C_TRUNC,
     layout: tuple[np.ndarray, np.ndarray] | None = None, sig2: np.ndarray | None = None,
@@ -178,54 +139,6 @@ def star_bets(x: np.ndarray, offsets: np.ndarray, delta0: np.ndarray,
     return StarBets(sig2, target)
 
 
-_LANES = 4  # groups stepped together: independent chains hide the latency of sqrt and log1p
-
-
-@numba.njit(cache=True, nogil=True)
-def _star_kernel(x, sig2, offsets, m, target, sign, running_max, c, r0, order, out):
-    """:func:`star_log_capital`'s recursion, ``_LANES`` groups (by ``order``) at a time."""
-    n_groups = len(offsets) - 1
-    pos = np.empty(_LANES, np.int64)
-    end = np.empty(_LANES, np.int64)
-    ell = np.empty(_LANES)
-    top = np.empty(_LANES)
-    mg = np.empty(_LANES)
-    var_m = np.empty(_LANES)
-    cap = np.empty(_LANES)
-    tgt = np.empty(_LANES)
-    for g0 in range(0, n_groups, _LANES):
-        lanes = min(_LANES, n_groups - g0)
-        steps = np.int64(1) << 62
-        for k in range(lanes):
-            g = order[g0 + k]
-            pos[k], end[k] = offsets[g], offsets[g + 1]
-            steps = min(steps, end[k] - pos[k])
-            mk = m[g] if sign > 0 else 1.0 - m[g]
-            mg[k], var_m[k], cap[k], tgt[k] = mk, mk * (1.0 - mk), c / mk, target[g]
-            ell[k], top[k] = 0.0, 0.0
-        for j in range(steps):
-            for k in range(lanes):
-                i = pos[k] + j
-                xi = x[i] if sign > 0 else 1.0 - x[i]
-                need = tgt[k] - ell[k]
-                b = math.sqrt(2.0 * max(need, r0) / ((end[k] - i) * min(sig2[i], var_m[k])))
-                if need < r0:
-                    b *= math.exp(need - r0)
-                ell[k] += math.log1p(min(b, cap[k]) * (xi - mg[k]))
-                top[k] = max(top[k], ell[k])
-        for k in range(lanes):
-            e, tp = ell[k], top[k]
-            for i in range(pos[k] + steps, end[k]):
-                xi = x[i] if sign > 0 else 1.0 - x[i]
-                need = tgt[k] - e
-                b = math.sqrt(2.0 * max(need, r0) / ((end[k] - i) * min(sig2[i], var_m[k])))
-                if need < r0:
-                    b *= math.exp(need - r0)
-                e += math.log1p(min(b, cap[k]) * (xi - mg[k]))
-                tp = max(tp, e)
-            out[order[g0 + k]] = tp if running_max else e
-
-
 def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: bool = True,
                      c: float = C_TRUNC) -> np.ndarray:
     """log max_{0<=t<=n} K^{sign}_t(m) per group with target-recalculating bets.
@@ -252,8 +165,10 @@ def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: b
     st = side.star
     if st.order is None:
         st.order = np.argsort(-side.sizes, kind="stable")
+    from twinfalsify.inference import kernels  # numba: imported when first needed
+
     out = np.empty(side.n_groups)
-    _star_kernel(side.x, st.sig2, side.offsets, np.asarray(m, float), st.target,
+    kernels.star_kernel(side.x, st.sig2, side.offsets, np.asarray(m, float), st.target,
                  int(sign), bool(running_max), float(c), STAR_R0, st.order, out)
     return out
 
