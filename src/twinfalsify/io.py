@@ -235,7 +235,8 @@ def cli_main(main: Callable[[], int | None], prog: str) -> int:
 
     Bad input here: a ContractError (bad data, config or context), a file that cannot be
     read or written, an engine module that cannot be imported. Anything else is a bug and
-    keeps its traceback.
+    keeps its traceback. For a program's ``__main__`` only: whatever the end, the heap is
+    frozen (:func:`freeze_heap`), as the process exits next.
     """
     try:
         return int(main() or 0)
@@ -247,6 +248,8 @@ def cli_main(main: Callable[[], int | None], prog: str) -> int:
         what = _file_error(exc)
         if what is None:
             raise
+    finally:
+        freeze_heap()
     print(f"{prog}: error: {what}", file=sys.stderr, flush=True)
     return 2
 

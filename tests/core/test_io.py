@@ -1,6 +1,6 @@
-"""``io.run_rule`` ends every job's process with its heap frozen (``io.freeze_heap``), so that
-Python's last garbage collection at exit does not walk pandas', matplotlib's and numba's
-objects; what it frees by reference counting is still freed."""
+"""``io.run_rule`` and ``io.cli_main`` end their process with its heap frozen
+(``io.freeze_heap``), so that Python's last garbage collection at exit does not walk pandas',
+matplotlib's and numba's objects; what reference counting frees is still freed."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from twinfalsify.io import freeze_heap, run_rule
+from twinfalsify.io import cli_main, freeze_heap, run_rule
 from twinfalsify.schema import ContractError
 
 
@@ -31,6 +31,18 @@ def test_run_rule_freezes_the_heap_however_the_job_ends(tmp_path, body):
             run_rule(sm, body)
         except SystemExit as exc:
             assert exc.code == 1
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+
+
+@pytest.mark.parametrize(("body", "code"), [(lambda _: 0, 0), (lambda _: 3, 3),
+                                            (_raise(ContractError("bad input")), 2)],
+                         ids=["success", "exit code", "bad input"])
+def test_a_command_lines_main_freezes_the_heap_however_it_ends(body, code, capsys):
+    gc.unfreeze()
+    try:
+        assert cli_main(lambda: body(None), "prog") == code
         assert gc.get_freeze_count() > 0
     finally:
         gc.unfreeze()

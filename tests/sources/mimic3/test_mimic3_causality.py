@@ -26,22 +26,46 @@ EARLY = pd.Timestamp("1700-01-01")
 VALUE_FEATURES = [f for f in schema.FEATURES if f not in ("age", "sex")]
 
 
+PERTURBED = ("CHARTEVENTS", "LABEVENTS")
+
+
+def read_events(src: Path) -> dict[str, pd.DataFrame]:
+    """The tables ``perturb_after`` changes, as the extraction reads them (every column text,
+    upper-case names)."""
+    con = connect(src, tables=PERTURBED)
+    try:
+        out = {}
+        for table in PERTURBED:
+            df = con.execute(f'SELECT * FROM "{table}"').df()
+            df.columns = [c.upper() for c in df.columns]
+            out[table] = df
+        return out
+    finally:
+        con.close()
+
+
 def perturb_after(src: Path, dst: Path, t0: pd.Series, t: int, seed: int = 0,
-                  scale: float = 0.02) -> int:
-    """Copy the MIMIC tables of ``src`` to ``dst`` (views as CSV), multiplying VALUENUM (and
-    VALUE, where numeric) of every CHARTEVENTS row charted at or after t0 + (t + 1) h of its
-    stay, and of every LABEVENTS row charted at or after that time for every stay of its
-    admission, by 1 + U(-scale, scale). Stays not in ``t0`` (not in the cohort): all their
-    rows are perturbed. Weights (read across the patient's stays: an hour without one takes
-    the patient's own last earlier weight) are perturbed from the latest cut of the
-    patient's cohort stays on, all of them for a patient without one. Returns the number of
-    perturbed rows."""
-    con = connect(src)
-    rng = np.random.default_rng(seed)
-    dst.mkdir(parents=True, exist_ok=True)
+                  scale: float = 0.02, events: dict[str, pd.DataFrame] | None = None) -> int:
+    """Copy the MIMIC tables of ``src`` to ``dst``, multiplying VALUENUM (and VALUE, where
+    numeric) of every CHARTEVENTS row charted at or after t0 + (t + 1) h of its stay, and of
+    every LABEVENTS row charted at or after that time for every stay of its admission, by
+    1 + U(-scale, scale). Stays not in ``t0`` (not in the cohort): all their rows are
+    perturbed. Weights (read across the patient's stays: an hour without one takes the
+    patient's own last earlier weight) are perturbed from the latest cut of the patient's
+    cohort stays on, all of them for a patient without one. The two perturbed tables are
+    written as Parquet with every column text (what the extraction reads from a CSV), the
+    others linked unchanged. ``events``: ``read_events(src)``, when the caller perturbs the
+    same folder several times. Returns the number of perturbed rows."""
+    from twinfalsify.sources.mimic3.tables import REQUIRED_COLUMNS, find_table
+
+    events = read_events(src) if events is None else events
+    con = connect(src, tables=("ICUSTAYS",))
     stays = con.execute("SELECT CAST(ICUSTAY_ID AS BIGINT) AS icustay_id, "
                         "CAST(HADM_ID AS BIGINT) AS hadm_id, "
                         "CAST(SUBJECT_ID AS BIGINT) AS subject_id FROM ICUSTAYS").df()
+    con.close()
+    rng = np.random.default_rng(seed)
+    dst.mkdir(parents=True, exist_ok=True)
     cut = (t0 + (t + 1) * pd.Timedelta(hours=1)).rename("cut")
     stays["cut"] = stays["icustay_id"].map(cut)  # NaT: not in the cohort
     subj_cut = stays.dropna(subset=["cut"]).groupby("subject_id")["cut"].max()
@@ -50,32 +74,32 @@ def perturb_after(src: Path, dst: Path, t0: pd.Series, t: int, seed: int = 0,
         "weight")].itemids())
     hadm_cut = stays.groupby("hadm_id")["cut"].max()  # later than the cut of every stay
     n = 0
-    from twinfalsify.sources.mimic3.tables import REQUIRED_COLUMNS
     for table in REQUIRED_COLUMNS:
-        df = con.execute(f'SELECT * FROM "{table}"').df()
-        df.columns = [c.upper() for c in df.columns]
-        if table in ("CHARTEVENTS", "LABEVENTS"):
-            time = pd.to_datetime(df["CHARTTIME"], errors="coerce")
-            if table == "CHARTEVENTS":
-                c = pd.to_numeric(df["ICUSTAY_ID"], errors="coerce").map(
-                    stays.set_index("icustay_id")["cut"])
-                wt = pd.to_numeric(df["ITEMID"], errors="coerce").isin(weight_items)
-                cs = pd.to_numeric(df["SUBJECT_ID"], errors="coerce").map(subj_cut)
-                c = c.where(~wt, cs)
-            else:
-                c = pd.to_numeric(df["HADM_ID"], errors="coerce").map(hadm_cut)
-            later = (time >= c.fillna(EARLY)).to_numpy()
-            v = pd.to_numeric(df["VALUENUM"], errors="coerce")
-            f = 1 + rng.uniform(-scale, scale, len(df))
-            hit = later & v.notna().to_numpy()
-            newv = (v * f).where(hit, v)
-            df["VALUENUM"] = np.where(hit, newv.map(lambda x: f"{x:.10g}"), df["VALUENUM"])
-            num = pd.to_numeric(df["VALUE"], errors="coerce")
-            vh = hit & num.notna().to_numpy()
-            df["VALUE"] = np.where(vh, (num * f).map(lambda x: f"{x:.10g}"), df["VALUE"])
-            n += int(hit.sum())
-        df.to_csv(dst / f"{table}.csv", index=False)
-    con.close()
+        if table not in PERTURBED:
+            path = find_table(src, table)
+            (dst / path.name).symlink_to(path.resolve())
+            continue
+        df = events[table].copy()
+        time = pd.to_datetime(df["CHARTTIME"], errors="coerce")
+        if table == "CHARTEVENTS":
+            c = pd.to_numeric(df["ICUSTAY_ID"], errors="coerce").map(
+                stays.set_index("icustay_id")["cut"])
+            wt = pd.to_numeric(df["ITEMID"], errors="coerce").isin(weight_items)
+            cs = pd.to_numeric(df["SUBJECT_ID"], errors="coerce").map(subj_cut)
+            c = c.where(~wt, cs)
+        else:
+            c = pd.to_numeric(df["HADM_ID"], errors="coerce").map(hadm_cut)
+        later = (time >= c.fillna(EARLY)).to_numpy()
+        v = pd.to_numeric(df["VALUENUM"], errors="coerce")
+        f = 1 + rng.uniform(-scale, scale, len(df))
+        hit = later & v.notna().to_numpy()
+        newv = (v * f).where(hit, v)
+        df["VALUENUM"] = np.where(hit, newv.map(lambda x: f"{x:.10g}"), df["VALUENUM"])
+        num = pd.to_numeric(df["VALUE"], errors="coerce")
+        vh = hit & num.notna().to_numpy()
+        df["VALUE"] = np.where(vh, (num * f).map(lambda x: f"{x:.10g}"), df["VALUE"])
+        n += int(hit.sum())
+        df.astype("string").to_parquet(dst / f"{table}.parquet", index=False)
     return n
 
 
@@ -90,9 +114,10 @@ def check_causal(folder: Path, tmp: Path, hours=range(schema.T_MAX), **kw) -> di
     ia = base.imputed.set_index([schema.STAY_ID, "t"]).reindex(columns=VALUE_FEATURES,
                                                                 fill_value=False)
     out = {}
+    events = read_events(folder)
     for t in hours:
         d = tmp / f"t{t}"
-        assert perturb_after(folder, d, t0, t) > 0
+        assert perturb_after(folder, d, t0, t, events=events) > 0
         other = extract_mimic3(d, **kw)
         b = other.trajectories.set_index([schema.STAY_ID, "t"])[VALUE_FEATURES]
         ib = other.imputed.set_index([schema.STAY_ID, "t"]).reindex(columns=VALUE_FEATURES,
