@@ -1,6 +1,6 @@
 """The fixtures several test files use (studies built once per run, the check for leftover
-child processes), and the order and slow marks of the whole suite. Plain helpers live in
-``tests/helpers/``."""
+child processes), the order and slow marks of the whole suite, and the session's bytecode and
+heap hooks. Plain helpers live in ``tests/helpers/``."""
 
 from __future__ import annotations
 

@@ -146,8 +146,8 @@ def freeze_heap() -> None:
     """Leave every object alive now out of the garbage collector's later passes
     (:func:`gc.freeze`), the one at interpreter exit included.
 
-    For objects that live as long as their process: a rule script's once its work is done,
-    the parsed workflow, a served twin once built. Python's last collection at exit would
+    For objects that live as long as their process: a rule script's, once its work is done;
+    the parsed workflow's; a served twin's, once built. Python's last collection at exit would
     otherwise walk the whole heap of pandas, matplotlib and numba, a fixed cost of every
     job's process (``benchmarks/bench_process_exit.py``). Objects stay reference-counted:
     only cycles among them are no longer collected, and files and logs are closed as before
