@@ -2,9 +2,10 @@
 
 They live in one module that :mod:`~twinfalsify.inference.capital` and
 :mod:`~twinfalsify.inference.betting` import when a test first bets, not when they are
-imported: a job that never bets (a figure, the summary, a Hoeffding-only study) does not pay
+imported: a job that never bets (most figures, the summary, a Hoeffding-only study) does not pay
 numba's import. Each kernel's numpy form and formula are in the function that calls it;
-tests compare every kernel with a plain form (``tests/inference/test_betting.py``).
+tests compare every kernel with a plain form (``tests/inference/test_betting.py``,
+``test_star_bets.py``).
 ``cache=True``: the machine code is kept beside this file and reused by later processes.
 """
 
