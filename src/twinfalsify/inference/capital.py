@@ -169,7 +169,7 @@ def star_log_capital(side: OrderedSide, m: np.ndarray, sign: int, running_max: b
 
     out = np.empty(side.n_groups)
     kernels.star_kernel(side.x, st.sig2, side.offsets, np.asarray(m, float), st.target,
-                 int(sign), bool(running_max), float(c), STAR_R0, st.order, out)
+                        int(sign), bool(running_max), float(c), STAR_R0, st.order, out)
     return out
 
 
